@@ -1,0 +1,8 @@
+"""`escape eval` (being written)."""
+
+import typer
+
+
+def command() -> None:
+    """Not available yet."""
+    raise typer.Exit(3)

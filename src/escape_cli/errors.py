@@ -1,0 +1,35 @@
+"""The exceptions escape raises for a user's mistake or bad data.
+
+The CLI turns every `EscapeError` into one line on stderr and a non-zero exit code;
+anything else is a bug and is reported as such.
+"""
+
+
+class EscapeError(Exception):
+    """Base class: a problem the user can fix (bad file, bad option, bad geometry)."""
+
+    exit_code = 1
+
+
+class InputFileError(EscapeError):
+    """A file is missing, unreadable, corrupt or in an unknown format."""
+
+
+class PointCloudError(EscapeError):
+    """A cloud cannot be used: empty, too small, non-finite, wrong shape."""
+
+
+class DegenerateGeometryError(EscapeError):
+    """Geometry too degenerate to work with (all points equal, collinear anchors...)."""
+
+
+class OutputExistsError(EscapeError):
+    """An output file exists and `--overwrite` was not given."""
+
+
+class ModelError(EscapeError):
+    """A model file is missing, corrupt, or does not match its metadata."""
+
+
+class DatasetError(EscapeError):
+    """A dataset folder does not have the expected layout."""

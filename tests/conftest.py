@@ -1,0 +1,32 @@
+"""Shared fixtures: seeded synthetic clouds and the third-party scans in ../shared/realdata."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+REALDATA = REPO.parent / "shared" / "realdata"
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def realdata_dir() -> Path:
+    """../shared/realdata, or skip the test with a message where it is absent."""
+    if not REALDATA.is_dir():
+        pytest.skip(f"third-party scans not found at {REALDATA}")
+    return REALDATA
+
+
+def realdata_clouds() -> list[Path]:
+    """Every point-cloud file under ../shared/realdata (empty where it is absent)."""
+    if not REALDATA.is_dir():
+        return []
+    suffixes = {".pcd", ".ply", ".xyz", ".txt", ".pts", ".npy"}
+    return sorted(p for p in REALDATA.rglob("*") if p.suffix.lower() in suffixes and p.is_file())
