@@ -30,3 +30,16 @@ def realdata_clouds() -> list[Path]:
         return []
     suffixes = {".pcd", ".ply", ".xyz", ".txt", ".pts", ".npy"}
     return sorted(p for p in REALDATA.rglob("*") if p.suffix.lower() in suffixes and p.is_file())
+
+
+@pytest.fixture(scope="session")
+def tiny_model(tmp_path_factory) -> Path:
+    """An untrained tiny network exported to ONNX (256 input points, 256 outputs)."""
+    pytest.importorskip("torch")
+    from escape_cli.nn.export import export_onnx
+    from tests_support import write_tiny_checkpoint
+
+    folder = tmp_path_factory.mktemp("tiny_model")
+    write_tiny_checkpoint(folder / "tiny.pt")
+    export_onnx(folder / "tiny.pt", folder / "tiny.onnx")
+    return folder / "tiny.onnx"

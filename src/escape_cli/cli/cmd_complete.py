@@ -1,8 +1,47 @@
-"""`escape complete` (being written)."""
+"""`escape complete`: complete partial scans with the shipped (or a given) model."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import List, Optional
 
 import typer
 
+from escape_cli.cli.options import FORMAT, OVERWRITE
 
-def command() -> None:
-    """Not available yet."""
-    raise typer.Exit(3)
+
+def command(
+    inputs: List[str] = typer.Argument(..., help="Partial clouds: files, folders, globs, or '-' for stdin."),
+    output: str = typer.Option(..., "--output", "-o", help="Output file (one input), folder (several), or '-'."),
+    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: models/escape-small.onnx)."),
+    normalize: str = typer.Option("auto", "--normalize", help="auto: scale scans to the model's units and back; none: input already in PCN units."),
+    points: int = typer.Option(16384, "--points", "-n", min=1, help="Points in each completed cloud."),
+    keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),
+    anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
+    residuals: bool = typer.Option(False, "--residuals", help="Add per-point reconstruction residuals as a 'residual' field."),
+    solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, help="Files completed in parallel."),
+    fmt: Optional[str] = FORMAT,
+    recursive: bool = typer.Option(False, "--recursive", "-r", help="Look for clouds in sub-folders too."),
+    json_out: bool = typer.Option(False, "--json", help="Per-file JSON summaries on stdout (else on stderr)."),
+    overwrite: bool = OVERWRITE,
+) -> None:
+    """Complete partial point clouds; the output stays in each input's frame and units."""
+    from escape_cli.cli.batch import CompletionJob, plan_jobs, run_jobs
+    from escape_cli.errors import EscapeError
+
+    if normalize not in ("auto", "none"):
+        raise typer.BadParameter("must be auto or none", param_hint="--normalize")
+    if solver not in ("batched", "scipy"):
+        raise typer.BadParameter("must be batched or scipy", param_hint="--solver")
+    jobs = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, overwrite=overwrite)
+    settings = CompletionJob.Settings(
+        model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
+        residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
+    )
+    summary_stream = sys.stdout if json_out and output != "-" else sys.stderr
+    failures = run_jobs(jobs, settings, workers=workers, summary_stream=summary_stream)
+    if failures:
+        raise EscapeError(f"{failures} of {len(jobs)} file(s) failed")

@@ -1,8 +1,139 @@
-"""`escape eval` (being written)."""
+"""`escape eval`: the rotated PCN benchmark (and robustness variants) and KITTI cars."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import List, Optional
 
 import typer
 
 
-def command() -> None:
-    """Not available yet."""
-    raise typer.Exit(3)
+def command(
+    dataset: str = typer.Option("pcn", "--dataset", help="pcn (any PCN-layout tree, e.g. from `escape dataset synth`) or kitti."),
+    root: Path = typer.Option(..., "--root", help="Dataset folder."),
+    split: str = typer.Option("test", "--split", help="PCN split: train, val or test."),
+    categories: Optional[List[str]] = typer.Option(None, "--categories", "-c", help="Category names or synsets (repeatable)."),
+    rotate: bool = typer.Option(False, "--rotate", help="Also evaluate rotated inputs (paper protocol) and report the gap."),
+    seed: int = typer.Option(0, "--seed", help="Seed of rotations, noise and point removal."),
+    noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian noise sigma added to the inputs."),
+    drop: float = typer.Option(0.0, "--drop", min=0.0, max=0.95, help="Share of input points removed at random."),
+    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="At most N objects per category."),
+    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: the shipped one)."),
+    baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
+    keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge observed points into the output."),
+    normalize: str = typer.Option("none", "--normalize", help="none (data already in PCN units) or auto."),
+    reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
+    json_path: Optional[Path] = typer.Option(None, "--json", help="Write every number to this JSON file."),
+    save: Optional[Path] = typer.Option(None, "--save", help="Write every completion (PLY) under this folder."),
+) -> None:
+    """Score completions: CD-L1 / CD-L2 x 1000 and F-Score@1% per category (PCN), or Fidelity and MMD (KITTI)."""
+    from rich.console import Console
+
+    from escape_cli.cli.options import check_output
+    from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pcn
+    from escape_cli.inference import load_model
+    from escape_cli.pipeline import complete
+
+    if dataset not in ("pcn", "kitti"):
+        raise typer.BadParameter("must be pcn or kitti", param_hint="--dataset")
+    if normalize not in ("auto", "none"):
+        raise typer.BadParameter("must be auto or none", param_hint="--normalize")
+    if json_path is not None:
+        check_output(json_path, overwrite=True)
+    net = load_model(str(model) if model else None)
+
+    def escape_completer(points):
+        return complete(points, net, normalize=normalize, keep_input=keep_input).points
+
+    completers = {"escape": escape_completer}
+    if baseline:
+        completers["input"] = lambda points: points
+    console = Console(stderr=True)
+    settings = {
+        "dataset": dataset, "root": str(root), "model": str(net.path), "rotate": rotate, "seed": seed,
+        "keep_input": keep_input, "normalize": normalize,
+    }
+    if dataset == "pcn":
+        settings.update(split=split, noise=noise, drop=drop, limit=limit)
+        with console.status("evaluating") as status:
+            result = evaluate_pcn(
+                root, completers, split=split, categories=categories, rotate=rotate, seed=seed,
+                perturbation=Perturbation(noise=noise, drop=drop), limit=limit, save_dir=save,
+                progress=lambda i, n: status.update(f"evaluating {i}/{n}"),
+            )
+        summary = result.summary()
+        _print_pcn_table(summary, list(completers), rotate)
+        report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}
+    else:
+        refs = _read_references(reference) if reference else None
+        report = evaluate_kitti(root, completers, reference=refs, rotate=rotate, seed=seed, save_dir=save)
+        report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **report}
+        _print_kitti_table(report)
+    if json_path is not None:
+        from escape_cli.io.files import write_output_bytes
+
+        write_output_bytes(json_path, (json.dumps(report, indent=1) + "\n").encode(), overwrite=True)
+
+
+def _read_references(folder: Path):
+    from escape_cli.cli.inputs import expand_inputs
+    from escape_cli.io import read_points
+
+    return [read_points(p) for p in expand_inputs([str(folder)], recursive=True)]
+
+
+def _print_pcn_table(summary: dict, methods: list[str], rotate: bool) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="CD-L1 x1000 (mean / median), CD-L2 x1000, F-Score@1%", show_lines=False)
+    table.add_column("category")
+    table.add_column("n", justify="right")
+    poses = [""] + (["rotated/"] if rotate else [])
+    for prefix in poses:
+        for name in methods:
+            tag = f"{name}{' rot' if prefix else ''}"
+            table.add_column(f"{tag} CD-L1", justify="right")
+            if name == "escape":
+                table.add_column(f"{tag} med", justify="right")
+                table.add_column(f"{tag} CD-L2", justify="right")
+                table.add_column(f"{tag} F@1%", justify="right")
+    if rotate:
+        table.add_column("rot gap", justify="right")
+
+    def row(label: str, stats: dict) -> list[str]:
+        cells = [label, str(stats.get("count", ""))]
+        for prefix in poses:
+            for name in methods:
+                cells.append(f"{stats[f'{prefix}{name}/cd_l1_x1000_mean']:.2f}")
+                if name == "escape":
+                    cells.append(f"{stats[f'{prefix}{name}/cd_l1_x1000_median']:.2f}")
+                    cells.append(f"{stats[f'{prefix}{name}/cd_l2_x1000_mean']:.2f}")
+                    cells.append(f"{stats[f'{prefix}{name}/fscore_1pct_mean']:.3f}")
+        if rotate:
+            a, b = stats["escape/cd_l1_x1000_mean"], stats["rotated/escape/cd_l1_x1000_mean"]
+            cells.append(f"{100 * (b - a) / a:+.2f}%")
+        return cells
+
+    for name, stats in summary["categories"].items():
+        table.add_row(*row(name, stats))
+    table.add_row(*row("[bold]average", summary["average"]))
+    Console(file=sys.stdout, width=max(120, 14 * len(table.columns))).print(table)
+
+
+def _print_kitti_table(report: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    keys = list(report["cars"][0]["metrics"])
+    table = Table(title="KITTI cars: Fidelity and MMD (CD-L2) x1000")
+    table.add_column("car")
+    table.add_column("points", justify="right")
+    for key in keys:
+        table.add_column(key.replace("_x1000", ""), justify="right")
+    for rec in report["cars"]:
+        table.add_row(rec["car"], str(rec["input_points"]), *[f"{rec['metrics'][k]:.3f}" for k in keys])
+    table.add_row("[bold]mean", "", *[f"{report['average'][k + '_mean']:.3f}" for k in keys])
+    Console(file=sys.stdout, width=max(120, 16 * len(table.columns))).print(table)

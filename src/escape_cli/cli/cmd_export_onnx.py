@@ -1,8 +1,30 @@
-"""`escape export-onnx` (being written)."""
+"""`escape export-onnx`: a training checkpoint to an ONNX model plus its metadata JSON."""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import typer
 
+from escape_cli.cli.options import OVERWRITE
 
-def command() -> None:
-    """Not available yet."""
-    raise typer.Exit(3)
+
+def command(
+    checkpoint: Path = typer.Argument(..., help="Checkpoint from `escape train` (best.pt or last.pt)."),
+    output: Path = typer.Option(..., "--output", "-o", help="Model file to write (.onnx); NAME.json goes beside it."),
+    opset: int = typer.Option(17, "--opset", help="ONNX opset version."),
+    overwrite: bool = OVERWRITE,
+) -> None:
+    """Export to ONNX (dynamic batch axis) and check onnxruntime against torch (<= 1e-4)."""
+    from escape_cli.errors import InputFileError
+    from escape_cli.nn.export import export_onnx
+
+    if output.suffix.lower() != ".onnx":
+        raise InputFileError(f"the model file must end in .onnx, got {output}")
+    meta = export_onnx(checkpoint, output, overwrite=overwrite, opset=opset)
+    size = output.stat().st_size / 1e6
+    typer.echo(
+        f"wrote {output} ({size:.1f} MB, {meta['parameters']} parameters) and {output.with_suffix('.json')}; "
+        f"onnxruntime vs torch max |diff| {meta['onnx_parity_max_abs']:.1e}",
+        err=True,
+    )

@@ -1,8 +1,60 @@
-"""`escape train` (being written)."""
+"""`escape train`: train the network on a PCN-layout dataset (synthetic or the real PCN)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
 
 import typer
 
 
-def command() -> None:
-    """Not available yet."""
-    raise typer.Exit(3)
+def command(
+    data: Path = typer.Option(..., "--data", help="PCN-layout dataset root (from `escape dataset synth`, or PCN)."),
+    out: Path = typer.Option(..., "--out", help="Run folder: checkpoints, curve.csv, cache."),
+    config: str = typer.Option("small", "--config", help="Network preset: small, paper (or tiny for tests)."),
+    epochs: int = typer.Option(10, "--epochs", min=1),
+    batch: int = typer.Option(8, "--batch", min=1),
+    lr: float = typer.Option(5e-4, "--lr"),
+    seed: int = typer.Option(0, "--seed"),
+    device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/last.pt."),
+    val_every: int = typer.Option(0, "--val-every", help="Validate every N steps (0: each epoch)."),
+    val_limit: int = typer.Option(400, "--val-limit", help="Validation samples used."),
+    denoise: float = typer.Option(0.0, "--denoise", help="Jitter input points by this sigma (denoising term)."),
+    categories: Optional[List[str]] = typer.Option(None, "--categories", help="Category names or synsets."),
+    workers: int = typer.Option(2, "--workers", help="Processes for preparing the data."),
+    threads: int = typer.Option(0, "--threads", help="Torch threads (0: default)."),
+    max_steps: Optional[int] = typer.Option(None, "--max-steps", help="Stop after this many steps."),
+) -> None:
+    """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from escape_cli.nn.config import get_preset
+    from escape_cli.nn.train import Trainer, TrainOptions
+
+    get_preset(config)  # fail early on an unknown preset
+    if not resume and (out / "last.pt").exists():
+        raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
+    options = TrainOptions(
+        data=str(data), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
+        device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
+        categories=tuple(categories) if categories else None, workers=workers, threads=threads,
+        max_steps=max_steps,
+    )
+    trainer = Trainer(options, resume=resume)
+    columns = [
+        TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+        TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
+    ]
+    with Progress(*columns, transient=False) as progress:
+        task = progress.add_task("train", total=None, info="")
+
+        def report(step: int, total: int, loss: float, metrics: dict) -> None:
+            val = metrics.get("val_xyz_cd_l1_x1000")
+            info = f"loss x1000 {1000 * loss:.2f}" + (f"  val CD-L1 x1000 {val:.2f}" if val is not None else "")
+            progress.update(task, completed=step, total=total, info=info)
+
+        metrics = trainer.run(report)
+    typer.echo(f"done: step {trainer.step}, best val CD-L1 x1000 {trainer.best:.3f}, run in {out}", err=True)
+    if metrics:
+        typer.echo(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()), err=True)

@@ -1,0 +1,149 @@
+"""Anchor points on a partial cloud: deterministic FPS, refined towards high curvature.
+
+Methods (paper section 3.1 and its ablation):
+
+- ``fps``: deterministic farthest point sampling started from the point farthest from
+  the centroid.
+- ``ball`` (default): each FPS anchor moves to the highest-curvature point within
+  `radius` of it.
+- ``cluster``: each point joins its nearest FPS anchor; each cluster's highest-curvature
+  point becomes the anchor.
+
+All three are rotation, translation and permutation equivariant: near-ties in curvature
+are broken by distance to the FPS anchor, then by distance to the centroid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from escape_cli.curvature import surface_variation
+from escape_cli.errors import DegenerateGeometryError, PointCloudError
+from escape_cli.sampling import as_points, count_distinct, farthest_point_sampling
+
+METHODS = ("ball", "fps", "cluster")
+DEFAULT_K = 8
+DEFAULT_RADIUS = 0.075
+DEFAULT_KNN = 16
+# Curvatures within this absolute tolerance of the best candidate are treated as tied.
+CURVATURE_TIE_ATOL = 1e-6
+# Anchors whose weakest spread is below this share of the strongest are "collinear".
+COLLINEAR_RTOL = 1e-6
+
+
+@dataclass(frozen=True)
+class Anchors:
+    """Anchors chosen on a cloud.
+
+    Attributes
+    ----------
+    indices : (K,) int64, rows of the input cloud.
+    points : (K, 3) float64, the anchor coordinates.
+    """
+
+    indices: np.ndarray
+    points: np.ndarray
+
+
+def select_anchors(
+    points,
+    k: int = DEFAULT_K,
+    method: str = "ball",
+    radius: float = DEFAULT_RADIUS,
+    knn: int = DEFAULT_KNN,
+) -> Anchors:
+    """Choose `k` distinct anchor points on a cloud.
+
+    Parameters
+    ----------
+    points : (N, 3) float, N >= k distinct points, not all on one line.
+    k : number of anchors (>= 4 for a 3D reconstruction).
+    method : "ball", "fps" or "cluster".
+    radius : search radius of the "ball" refinement, in the cloud's units.
+    knn : neighbourhood size of the curvature estimate.
+
+    Returns
+    -------
+    Anchors with indices (K,) and points (K, 3).
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown anchor method {method!r}; choose from {', '.join(METHODS)}")
+    if k < 4:
+        raise PointCloudError(f"at least 4 anchors are needed for 3D reconstruction, got k={k}")
+    if radius <= 0 or knn < 3:
+        raise PointCloudError(f"radius must be > 0 and knn >= 3 (got radius={radius}, knn={knn})")
+    pts = as_points(points, min_points=k)
+    distinct = count_distinct(pts)
+    if distinct < k:
+        raise DegenerateGeometryError(f"the cloud has only {distinct} distinct points; {k} anchors need at least {k}")
+    check_not_collinear(pts)
+
+    seeds = farthest_point_sampling(pts, k)  # (K,)
+    if method == "fps":
+        chosen = seeds
+    else:
+        curvature = surface_variation(pts, knn)  # (N,)
+        centroid_dist = np.linalg.norm(pts - pts.mean(axis=0), axis=1)  # (N,)
+        if method == "ball":
+            chosen = _refine_in_balls(pts, seeds, curvature, centroid_dist, radius)
+        else:
+            chosen = _refine_in_clusters(pts, seeds, curvature, centroid_dist)
+    return Anchors(indices=chosen.astype(np.int64), points=pts[chosen].copy())
+
+
+def check_not_collinear(points: np.ndarray) -> None:
+    """Raise DegenerateGeometryError when all points lie on one line (or one point)."""
+    centred = points - points.mean(axis=0)
+    sv = np.linalg.svd(centred, compute_uv=False)  # (3,) descending
+    if sv[0] <= 0:
+        raise DegenerateGeometryError("all points are identical")
+    if sv[1] <= COLLINEAR_RTOL * sv[0]:
+        raise DegenerateGeometryError("all points lie on one line; anchors would be collinear")
+
+
+def _best_candidate(candidates, curvature, seed_point, pts, centroid_dist) -> int:
+    """Highest curvature; near-ties -> nearest the FPS seed, then farthest from the centroid."""
+    kappa = curvature[candidates]
+    tied = candidates[kappa >= kappa.max() - CURVATURE_TIE_ATOL]
+    if len(tied) == 1:
+        return int(tied[0])
+    to_seed = np.linalg.norm(pts[tied] - seed_point, axis=1)
+    near = tied[to_seed <= to_seed.min() * (1 + 1e-9) + 1e-12]
+    return int(near[np.argmax(centroid_dist[near])])
+
+
+def _is_free(pts, chosen: list[int]) -> np.ndarray:
+    """(N,) bool: points whose coordinates differ from every anchor chosen so far."""
+    free = np.ones(len(pts), dtype=bool)
+    for c in chosen:
+        free &= np.any(pts != pts[c], axis=1)
+    return free
+
+
+def _refine_in_balls(pts, seeds, curvature, centroid_dist, radius) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(pts)
+    chosen: list[int] = []
+    for seed in seeds:
+        free = _is_free(pts, chosen)
+        ball = np.asarray(tree.query_ball_point(pts[seed], radius), dtype=np.int64)
+        candidates = ball[free[ball]] if len(ball) else ball
+        if len(candidates) == 0:  # the whole ball is taken: nearest free point
+            candidates = np.flatnonzero(free)
+            d = np.linalg.norm(pts[candidates] - pts[seed], axis=1)
+            candidates = candidates[d <= d.min() * (1 + 1e-9) + 1e-12]
+        chosen.append(_best_candidate(candidates, curvature, pts[seed], pts, centroid_dist))
+    return np.asarray(chosen)
+
+
+def _refine_in_clusters(pts, seeds, curvature, centroid_dist) -> np.ndarray:
+    to_seeds = np.linalg.norm(pts[:, None, :] - pts[seeds][None, :, :], axis=2)  # (N, K)
+    cluster = np.argmin(to_seeds, axis=1)  # (N,)
+    chosen: list[int] = []
+    for j, seed in enumerate(seeds):
+        members = np.flatnonzero(cluster == j)
+        chosen.append(_best_candidate(members, curvature, pts[seed], pts, centroid_dist))
+    return np.asarray(chosen)

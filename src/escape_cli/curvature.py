@@ -1,0 +1,66 @@
+"""Rotation-invariant curvature of a point cloud: surface variation of kNN neighbourhoods."""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Neighbours whose distance is within this relative tolerance of the k-th one are all
+# kept, so that exact ties (grid-like scans) cannot change the neighbourhood under rotation.
+NEIGHBOUR_TIE_RTOL = 1e-7
+
+
+def tie_stable_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """kNN neighbourhoods that include every point tied with the k-th neighbour.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+    k : neighbours per point, the point itself included.
+
+    Returns
+    -------
+    indices : (N, L) int64, L >= k, padded with the point itself.
+    mask : (N, L) bool, True for real neighbours.
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    k = min(k, n)
+    extra = min(n, k + 8)
+    dist, idx = cKDTree(points).query(points, k=extra)  # (N, L)
+    dist = dist.reshape(n, extra)
+    idx = idx.reshape(n, extra)
+    kth = dist[:, k - 1 : k]  # (N, 1)
+    mask = dist <= kth * (1.0 + NEIGHBOUR_TIE_RTOL) + 1e-15
+    idx = np.where(mask, idx, np.arange(n)[:, None])
+    return idx, mask
+
+
+def surface_variation(points, k: int = 16) -> np.ndarray:
+    """Curvature as surface variation, kappa_i = lambda_min / (lambda_1 + lambda_2 + lambda_3).
+
+    The eigenvalues are those of the covariance of point i's k nearest neighbours. It
+    needs no normals, so it has no sign ambiguity, and eigenvalues are exactly rotation
+    invariant. Flat regions give ~0, edges and corners up to 1/3.
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+    k : neighbourhood size (the point itself included).
+
+    Returns
+    -------
+    curvature : (N,) float64 in [0, 1/3].
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    idx, mask = tie_stable_neighbours(pts, k)
+    weights = mask / mask.sum(axis=1, keepdims=True)  # (N, L)
+    neigh = pts[idx]  # (N, L, 3)
+    mean = np.einsum("nl,nlc->nc", weights, neigh)  # (N, 3)
+    centred = (neigh - mean[:, None, :]) * np.sqrt(weights)[:, :, None]  # (N, L, 3)
+    cov = np.einsum("nla,nlb->nab", centred, centred)  # (N, 3, 3)
+    eig = np.linalg.eigvalsh(cov)  # (N, 3) ascending
+    total = eig.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kappa = np.where(total > 0, eig[:, 0] / total, 0.0)
+    return np.clip(kappa, 0.0, 1.0 / 3.0)

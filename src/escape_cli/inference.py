@@ -1,0 +1,134 @@
+"""Loading a shipped ONNX model with its metadata and running it with onnxruntime (no torch)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from escape_cli.errors import ModelError
+
+DEFAULT_MODEL_NAME = "escape-small.onnx"
+MODEL_ENV = "ESCAPE_MODEL"
+
+
+def default_model_path() -> Path:
+    """The model `escape complete` uses without `--model`: $ESCAPE_MODEL, else models/escape-small.onnx."""
+    if os.environ.get(MODEL_ENV):
+        return Path(os.environ[MODEL_ENV])
+    here = Path(__file__).resolve()
+    for parent in here.parents:
+        candidate = parent / "models" / DEFAULT_MODEL_NAME
+        if candidate.exists():
+            return candidate
+    raise ModelError(f"no model found: pass --model or set {MODEL_ENV} (looked for models/{DEFAULT_MODEL_NAME})")
+
+
+@dataclass(frozen=True)
+class AnchorParams:
+    k: int
+    method: str
+    radius: float
+    knn: int
+
+
+class CompletionModel:
+    """An exported network: (B, N, K) partial distances -> (B, M, K) complete distances."""
+
+    def __init__(self, path: Path, threads: int = 0):
+        self.path = Path(path)
+        self.meta = read_metadata(self.path)
+        self._verify_checksum()
+        self.session = _session(str(self.path), threads)
+        self.input_name = self.meta.get("input_name", "partial_distances")
+        self.output_name = self.meta.get("output_name", "distances")
+
+    @property
+    def k(self) -> int:
+        return int(self.meta["k"])
+
+    @property
+    def input_points(self) -> int:
+        return int(self.meta["input_points"])
+
+    @property
+    def output_points(self) -> int:
+        return int(self.meta["output_points"])
+
+    @property
+    def merge_observed(self) -> bool:
+        return bool(self.meta.get("merge_observed", True))
+
+    @property
+    def target_radius(self) -> float | None:
+        value = self.meta.get("normalization", {}).get("target_radius")
+        return None if value is None else float(value)
+
+    @property
+    def anchors(self) -> AnchorParams:
+        a = self.meta.get("anchors", {})
+        return AnchorParams(int(a.get("k", self.k)), a.get("method", "ball"), float(a.get("radius", 0.075)), int(a.get("knn", 16)))
+
+    def predict(self, partial_distances: np.ndarray) -> np.ndarray:
+        """partial_distances : (B, N, K) -> (B, M, K) float32."""
+        x = np.ascontiguousarray(partial_distances, dtype=np.float32)
+        if x.ndim != 3 or x.shape[1:] != (self.input_points, self.k):
+            raise ModelError(f"model expects (B, {self.input_points}, {self.k}) distances, got {x.shape}")
+        try:
+            return self.session.run([self.output_name], {self.input_name: x})[0]
+        except Exception as err:
+            raise ModelError(f"running {self.path.name} failed: {err}") from None
+
+    def _verify_checksum(self) -> None:
+        want = self.meta.get("sha256")
+        if not want:
+            return
+        digest = hashlib.sha256()
+        with open(self.path, "rb") as fh:
+            for chunk in iter(lambda: fh.read(1 << 20), b""):
+                digest.update(chunk)
+        if digest.hexdigest() != want:
+            raise ModelError(f"{self.path} is corrupt: its checksum does not match {self.path.with_suffix('.json').name}")
+
+
+def read_metadata(path: Path) -> dict:
+    """The JSON beside a model file, checked for the fields inference needs."""
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"model file {path} does not exist")
+    meta_path = path.with_suffix(".json")
+    if not meta_path.is_file():
+        raise ModelError(f"model metadata {meta_path} is missing (export-onnx writes it beside the model)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as err:
+        raise ModelError(f"model metadata {meta_path} is unreadable: {err}") from None
+    missing = [key for key in ("k", "input_points", "output_points") if key not in meta]
+    if missing:
+        raise ModelError(f"model metadata {meta_path} lacks {', '.join(missing)}")
+    return meta
+
+
+@lru_cache(maxsize=4)
+def _session(path: str, threads: int):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    if threads:
+        options.intra_op_num_threads = threads
+    try:
+        return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+    except Exception as err:
+        raise ModelError(f"cannot load model {path}: {str(err).splitlines()[0]}") from None
+
+
+@lru_cache(maxsize=4)
+def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
+    """Load (and cache) a model; None means the default model."""
+    return CompletionModel(Path(path) if path else default_model_path(), threads)

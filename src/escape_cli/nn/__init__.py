@@ -1,0 +1,1 @@
+"""The ESCAPE network, its loss, training and ONNX export (the only part that imports torch)."""

@@ -1,0 +1,72 @@
+"""Typed network configurations: a `small` preset for CPUs and the authors' `paper` preset."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Sizes of the distance-space completion network.
+
+    The network reads (B, N, K) distances of the partial cloud to K anchors, its rows in
+    farthest-point order, and predicts (B, Q * fold, K) distances of the complete shape.
+    """
+
+    anchors: int = 8  # K
+    input_points: int = 2048  # N
+    centres_fine: int = 512  # first grouping stage: the N rows' FPS prefix
+    centres_coarse: int = 128  # second grouping stage: proxies seen by the transformer
+    group_knn: int = 16  # neighbours per centre in the EdgeConv grouping
+    embed_dim: int = 64  # per-point embedding before grouping
+    dim: int = 256  # transformer width
+    heads: int = 4
+    encoder_depth: int = 4
+    decoder_depth: int = 4
+    ffn_ratio: float = 2.0
+    predicted_queries: int = 128  # queries regressed from the global feature
+    input_queries: int = 128  # queries seeded from the input's own FPS rows
+    fold: int = 56  # points rebuilt per query
+    rebuild_hidden: int = 128
+
+    @property
+    def queries(self) -> int:
+        return self.predicted_queries + self.input_queries
+
+    @property
+    def output_points(self) -> int:
+        return self.queries * self.fold
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ModelConfig":
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+
+PRESETS: dict[str, ModelConfig] = {
+    # Trains on 2 CPU cores; predicts 256 x 56 = 14336 points, the 2048 observed points
+    # complete them to 16384.
+    "small": ModelConfig(),
+    # Two tiny configurations for tests.
+    "tiny": ModelConfig(
+        input_points=256, centres_fine=64, centres_coarse=32, group_knn=8, embed_dim=16, dim=32,
+        heads=2, encoder_depth=1, decoder_depth=1, predicted_queries=16, input_queries=16, fold=8,
+        rebuild_hidden=32,
+    ),
+    # The authors' AdaPoinTr-sized configuration (~35 M parameters), for a GPU.
+    "paper": ModelConfig(
+        centres_fine=512, centres_coarse=256, group_knn=16, embed_dim=64, dim=384, heads=6,
+        encoder_depth=6, decoder_depth=8, ffn_ratio=4.0, predicted_queries=256, input_queries=256,
+        fold=32, rebuild_hidden=512,
+    ),
+}
+
+
+def get_preset(name: str) -> ModelConfig:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown config {name!r}; choose from {', '.join(PRESETS)}") from None

@@ -1,0 +1,135 @@
+"""Export a training checkpoint to ONNX with its metadata, and check onnxruntime against torch."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from escape_cli.errors import ModelError, OutputExistsError
+from escape_cli.nn.train import load_checkpoint_model
+
+MODEL_FORMAT = "escape-model/1"
+PARITY_TOLERANCE = 1e-4
+
+
+class _Exportable(torch.nn.Module):
+    def __init__(self, net: torch.nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, partial_distances: torch.Tensor):
+        return self.net(partial_distances)
+
+
+def sample_input(config, batch: int = 2, seed: int = 0) -> np.ndarray:
+    """A realistic (B, N, K) float32 input: distances of a half-ellipsoid patch to its anchors."""
+    from escape_cli.anchors import select_anchors
+    from escape_cli.encoding import distance_matrix
+    from escape_cli.sampling import prepare_input
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(batch):
+        pts = rng.normal(size=(3000, 3))
+        pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+        pts *= rng.uniform(0.15, 0.45, size=3)
+        pts = pts[pts[:, 0] > -0.05]
+        prepared, unique = prepare_input(pts, config.input_points)
+        anchors = select_anchors(prepared[:unique], config.anchors)
+        rows.append(distance_matrix(prepared, anchors.points))
+    return np.stack(rows).astype(np.float32)
+
+
+def file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def export_onnx(checkpoint: Path, output: Path, overwrite: bool = False, opset: int = 17) -> dict:
+    """Write OUTPUT (.onnx) and OUTPUT.json; returns the metadata.
+
+    Fails (and writes nothing) when onnxruntime and torch differ by more than 1e-4.
+    """
+    import onnxruntime as ort
+
+    output = Path(output)
+    meta_path = output.with_suffix(".json")
+    for path in (output, meta_path):
+        if path.exists() and not overwrite:
+            raise OutputExistsError(f"{path} exists (use --overwrite to replace it)")
+    net, state = load_checkpoint_model(Path(checkpoint))
+    config = net.config
+    example = torch.from_numpy(sample_input(config))
+    output.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(suffix=".onnx", dir=output.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        with warnings.catch_warnings():  # tracer notes about Python-level shape checks
+            warnings.simplefilter("ignore")
+            torch.onnx.export(
+                _Exportable(net), (example,), str(tmp), input_names=["partial_distances"],
+                output_names=["distances", "coarse"], opset_version=opset, dynamo=False,
+                dynamic_axes={"partial_distances": {0: "batch"}, "distances": {0: "batch"}, "coarse": {0: "batch"}},
+            )
+        with torch.no_grad():
+            want = net(example)[0].numpy()
+        session = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
+        single = example[:1].numpy()
+        got = session.run(["distances"], {"partial_distances": example.numpy()})[0]
+        got_single = session.run(["distances"], {"partial_distances": single})[0]
+        diff = float(max(np.abs(got - want).max(), np.abs(got_single - want[:1]).max()))
+        if not diff <= PARITY_TOLERANCE:
+            raise ModelError(f"onnxruntime differs from torch by {diff:.2e} (> {PARITY_TOLERANCE:g}); not exported")
+        meta = _metadata(state, output.name, file_sha256(tmp), diff)
+        tmp.replace(output)
+    finally:
+        tmp.unlink(missing_ok=True)
+    tmp_meta = meta_path.with_suffix(".json.tmp")
+    tmp_meta.write_text(json.dumps(meta, indent=2) + "\n")
+    tmp_meta.replace(meta_path)
+    return meta
+
+
+def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
+    config = state["config"]
+    options = state.get("options", {})
+    queries = config["predicted_queries"] + config["input_queries"]
+    return {
+        "format": MODEL_FORMAT,
+        "onnx": onnx_name,
+        "sha256": sha256,
+        "k": config["anchors"],
+        "input_points": config["input_points"],
+        "output_points": queries * config["fold"],
+        "input_name": "partial_distances",
+        "output_name": "distances",
+        "anchors": state.get("anchors", {"k": config["anchors"], "method": "ball", "radius": 0.075, "knn": 16}),
+        "merge_observed": bool(options.get("include_observed", True)),
+        "normalization": {"method": "centroid + rms radius", "target_radius": state.get("input_radius")},
+        "config_name": options.get("config"),
+        "config": config,
+        "parameters": state.get("parameters"),
+        "training": {
+            "data": options.get("data"),
+            "seed": options.get("seed"),
+            "train_samples": state.get("train_samples"),
+            "train_objects": state.get("train_objects"),
+            "steps": state.get("step"),
+            "epochs": round(state.get("step", 0) / max(1, state.get("steps_per_epoch", 1)), 3),
+            "batch": options.get("batch"),
+            "train_seconds": round(state.get("elapsed", 0.0), 1),
+        },
+        "validation": state.get("metrics", {}),
+        "onnx_parity_max_abs": parity,
+    }

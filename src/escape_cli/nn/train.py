@@ -1,0 +1,275 @@
+"""Training loop: DMCD loss, warm-up + cosine schedule, validation, checkpoints, resume."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from escape_cli.errors import EscapeError
+from escape_cli.nn.config import ModelConfig, get_preset
+from escape_cli.nn.loss import chamfer_l1
+from escape_cli.nn.model import EscapeNet, count_parameters
+from escape_cli.nn.samples import AnchorSettings, PreparedSplit, prepare_split
+
+log = logging.getLogger("escape")
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """Everything a training run depends on (saved in every checkpoint)."""
+
+    data: str
+    out: str
+    config: str = "small"
+    epochs: int = 10
+    batch: int = 8
+    lr: float = 5e-4
+    weight_decay: float = 5e-4
+    warmup_steps: int = 300
+    min_lr_ratio: float = 0.02
+    seed: int = 0
+    device: str = "cpu"
+    gt_points: int = 4096  # ground-truth subsample per step for the loss
+    coarse_gt_points: int = 1024
+    fold_subset: int = 16  # rebuilt points per query used per step (of `fold`)
+    coarse_weight: float = 1.0
+    include_observed: bool = True  # the input's own rows join the prediction in the loss
+    denoise_sigma: float = 0.0  # Gaussian jitter on input points; the target stays clean
+    val_every: int = 0  # steps between validations (0: once per epoch)
+    val_limit: int = 400
+    xyz_val_samples: int = 24
+    checkpoint_every: int = 200
+    workers: int = 2
+    threads: int = 0  # torch threads (0: torch's default)
+    categories: tuple[str, ...] | None = None
+    max_steps: int | None = None  # stop early (tests, smoke runs)
+    anchors: AnchorSettings = field(default_factory=AnchorSettings)
+
+
+def distances(points: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
+    """points : (B, N, 3), anchors : (B, K, 3) -> (B, N, K)."""
+    return torch.cdist(points, anchors)
+
+
+class Trainer:
+    """Holds the model, data and state of one run; `run()` trains until the last epoch."""
+
+    def __init__(self, options: TrainOptions, resume: bool = False):
+        self.opt = options
+        self.out = Path(options.out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        if options.threads:
+            torch.set_num_threads(options.threads)
+        self.device = torch.device(options.device)
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise EscapeError("--device cuda was asked for but no CUDA device is available")
+        self.config: ModelConfig = get_preset(options.config)
+        torch.manual_seed(options.seed)
+        self.model = EscapeNet(self.config).to(self.device)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=options.lr, weight_decay=options.weight_decay)
+        self.step = 0
+        self.epoch = 0
+        self.elapsed = 0.0
+        self.best = math.inf
+        cache = self.out / "cache"
+        common = dict(
+            input_points=self.config.input_points, settings=options.anchors, cache_dir=cache,
+            categories=options.categories, workers=options.workers,
+        )
+        self.train_data: PreparedSplit = prepare_split(Path(options.data), "train", **common)
+        self.val_data: PreparedSplit = prepare_split(
+            Path(options.data), "val", views="first", limit=options.val_limit, **common
+        )
+        self.steps_per_epoch = max(1, len(self.train_data) // options.batch)
+        self.input_radius = self._median_input_radius()
+        if resume:
+            self._load(self.out / "last.pt")
+        (self.out / "options.json").write_text(json.dumps(asdict(options), indent=2, default=str))
+
+    def _median_input_radius(self, count: int = 512) -> float:
+        """Median radius statistic of training partials: the scale `--normalize auto` maps scans to."""
+        from escape_cli.normalize import cloud_radius
+
+        data = self.train_data
+        rows = np.linspace(0, len(data) - 1, min(count, len(data))).astype(int)
+        return float(np.median([cloud_radius(data.inputs[i, : data.unique_counts[i]]) for i in rows]))
+
+    # -- schedule and state -------------------------------------------------------------
+    def lr_at(self, step: int) -> float:
+        o = self.opt
+        total = max(o.epochs * self.steps_per_epoch, o.warmup_steps + 1)
+        if step < o.warmup_steps:
+            return o.lr * (step + 1) / o.warmup_steps
+        progress = min(1.0, (step - o.warmup_steps) / max(1, total - o.warmup_steps))
+        return o.lr * (o.min_lr_ratio + (1 - o.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+    def _state(self) -> dict:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "step": self.step,
+            "epoch": self.epoch,
+            "elapsed": self.elapsed,
+            "best": self.best,
+            "config": self.config.to_dict(),
+            "options": asdict(self.opt),
+            "anchors": asdict(self.opt.anchors),
+            "parameters": count_parameters(self.model),
+            "train_samples": len(self.train_data),
+            "train_objects": len(self.train_data.completes),
+            "steps_per_epoch": self.steps_per_epoch,
+            "input_radius": self.input_radius,
+        }
+
+    def _save(self, name: str, extra: dict | None = None) -> None:
+        state = self._state()
+        state.update(extra or {})
+        tmp = self.out / f".{name}.tmp"
+        torch.save(state, tmp)
+        tmp.replace(self.out / name)
+
+    def _load(self, path: Path) -> None:
+        if not path.exists():
+            raise EscapeError(f"cannot resume: {path} does not exist")
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.step, self.epoch = state["step"], state["epoch"]
+        self.elapsed, self.best = state["elapsed"], state["best"]
+        log.info("resumed from %s at step %d (epoch %d)", path, self.step, self.epoch)
+
+    # -- one batch ----------------------------------------------------------------------
+    def _batch(self, data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float):
+        pts = torch.from_numpy(data.inputs[idx]).to(self.device)  # (B, N, 3)
+        anc = torch.from_numpy(data.anchors[idx]).to(self.device)  # (B, K, 3)
+        if noise > 0:
+            pts = pts + noise * torch.from_numpy(rng.standard_normal(pts.shape).astype(np.float32)).to(self.device)
+        m = data.completes.shape[1]
+        rows = np.stack([rng.choice(m, min(gt_points, m), replace=False) for _ in idx])  # (B, G)
+        gt = torch.from_numpy(data.completes[data.object_index[idx][:, None], rows]).to(self.device)  # (B, G, 3)
+        return distances(pts, anc), distances(gt, anc)  # (B, N, K), (B, G, K)
+
+    def _loss(self, d_in, d_gt, fine, coarse):
+        pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
+        fine_loss = chamfer_l1(pred, d_gt)
+        coarse_loss = chamfer_l1(coarse, d_gt[:, : self.opt.coarse_gt_points])
+        return fine_loss + self.opt.coarse_weight * coarse_loss, fine_loss
+
+    def train_step(self, idx: np.ndarray, rng: np.random.Generator) -> float:
+        self.model.train()
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.lr_at(self.step)
+        d_in, d_gt = self._batch(self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma)
+        seed_index = torch.from_numpy(np.sort(rng.choice(self.config.fold, min(self.opt.fold_subset, self.config.fold), replace=False)))
+        fine, coarse = self.model(d_in, seed_index.to(self.device))
+        loss, _ = self._loss(d_in, d_gt, fine, coarse)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+        self.optimizer.step()
+        self.step += 1
+        return float(loss.item())
+
+    # -- validation ---------------------------------------------------------------------
+    @torch.no_grad()
+    def validate(self) -> dict:
+        """Distance-space CD-L1 on the val split and xyz CD-L1 after reconstruction on a subset."""
+        from escape_cli.metrics import chamfer_l1 as xyz_chamfer_l1
+        from escape_cli.reconstruction import reconstruct
+
+        self.model.eval()
+        rng = np.random.default_rng(12345)  # the same ground-truth subsets every time
+        data = self.val_data
+        dmcd = []
+        xyz, baseline = [], []
+        for start in range(0, len(data), self.opt.batch):
+            idx = np.arange(start, min(len(data), start + self.opt.batch))
+            d_in, d_gt = self._batch(data, idx, rng, self.opt.gt_points, 0.0)
+            fine, coarse = self.model(d_in)
+            pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
+            dmcd.append(chamfer_l1(pred, d_gt).item() * len(idx))
+            for j, i in enumerate(idx):
+                if i >= self.opt.xyz_val_samples:
+                    continue
+                anchors = data.anchors[i].astype(np.float64)
+                rec = reconstruct(fine[j].cpu().double().numpy(), anchors, reference_points=data.inputs[i]).points
+                observed = data.inputs[i].astype(np.float64)
+                out = np.concatenate([rec, observed]) if self.opt.include_observed else rec
+                truth = data.completes[data.object_index[i]].astype(np.float64)
+                xyz.append(xyz_chamfer_l1(out, truth))
+                baseline.append(xyz_chamfer_l1(observed, truth))
+        return {
+            "val_dmcd_x1000": 1000 * sum(dmcd) / len(data),
+            "val_xyz_cd_l1_x1000": 1000 * float(np.mean(xyz)) if xyz else float("nan"),
+            "val_input_cd_l1_x1000": 1000 * float(np.mean(baseline)) if baseline else float("nan"),
+        }
+
+    def _log_curve(self, row: dict) -> None:
+        path = self.out / "curve.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as fh:
+            writer = csv.DictWriter(fh, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+
+    # -- the loop -----------------------------------------------------------------------
+    def run(self, progress_callback=None) -> dict:
+        o = self.opt
+        last_metrics: dict = {}
+        losses: list[float] = []
+        total_steps = o.epochs * self.steps_per_epoch
+        if o.max_steps is not None:
+            total_steps = min(total_steps, o.max_steps)
+        while self.step < total_steps:
+            self.epoch = self.step // self.steps_per_epoch
+            pos = self.step % self.steps_per_epoch
+            order = np.random.default_rng((o.seed, self.epoch)).permutation(len(self.train_data))
+            idx = order[pos * o.batch : (pos + 1) * o.batch]
+            rng = np.random.default_rng((o.seed, self.step, 1))
+            t0 = time.perf_counter()
+            losses.append(self.train_step(idx, rng))
+            self.elapsed += time.perf_counter() - t0
+            end_of_epoch = self.step % self.steps_per_epoch == 0
+            due = (o.val_every and self.step % o.val_every == 0) or end_of_epoch or self.step == total_steps
+            if progress_callback:
+                progress_callback(self.step, total_steps, losses[-1], last_metrics)
+            if due:
+                last_metrics = self.validate()
+                row = {
+                    "step": self.step, "epoch": self.step / self.steps_per_epoch,
+                    "train_loss_x1000": 1000 * float(np.mean(losses)), **last_metrics,
+                    "lr": self.lr_at(self.step), "train_seconds": round(self.elapsed, 1),
+                }
+                self._log_curve(row)
+                losses = []
+                score = last_metrics["val_xyz_cd_l1_x1000"]
+                if score < self.best:
+                    self.best = score
+                    self._save("best.pt", {"metrics": row})
+                self._save("last.pt", {"metrics": row})
+            elif self.step % o.checkpoint_every == 0:
+                self._save("last.pt")
+        return last_metrics
+
+
+def load_checkpoint_model(path: Path) -> tuple[EscapeNet, dict]:
+    """Rebuild the network of a checkpoint in eval mode; returns (model, checkpoint dict)."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        model = EscapeNet(ModelConfig.from_dict(state["config"]))
+        model.load_state_dict(state["model"])
+    except FileNotFoundError:
+        raise EscapeError(f"checkpoint {path} does not exist") from None
+    except Exception as err:  # torch raises many kinds for a bad file
+        raise EscapeError(f"cannot load checkpoint {path}: {err}") from None
+    model.eval()
+    return model, state

@@ -1,0 +1,149 @@
+"""End-to-end completion of one cloud: normalise, anchors, encode, network, reconstruct, merge.
+
+    from escape_cli import complete
+    result = complete(points)          # points : (N, 3) in any frame and units
+    result.points                      # (M, 3) completed cloud in the input's frame
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from escape_cli.errors import PointCloudError
+from escape_cli.sampling import as_points, count_distinct
+
+MIN_INPUT_POINTS = 16
+NORMALIZE_MODES = ("auto", "none")
+
+
+@dataclass(frozen=True)
+class Completion:
+    """The result of `complete`.
+
+    Attributes
+    ----------
+    points : (M, 3) float64, the completed cloud in the input's frame and units.
+    residuals : (M,) float64, per-point reconstruction residual in input units (0 for
+        observed points); a confidence measure.
+    is_observed : (M,) bool, True for points copied from the input.
+    anchors : (K, 3) float64, the anchors in the input's frame.
+    anchor_indices : (K,) int64, rows of the network input (the FPS-ordered subsample).
+    near_planar : bool, the anchors were nearly coplanar (less reliable depth).
+    normalization : the transform applied before the network (`invert` maps back).
+    """
+
+    points: np.ndarray
+    residuals: np.ndarray
+    is_observed: np.ndarray
+    anchors: np.ndarray
+    anchor_indices: np.ndarray
+    near_planar: bool
+    normalization: object
+
+    def summary(self) -> dict:
+        predicted = ~self.is_observed
+        return {
+            "points": int(len(self.points)),
+            "observed": int(self.is_observed.sum()),
+            "near_planar_anchors": bool(self.near_planar),
+            "residual_mean": float(self.residuals[predicted].mean()) if predicted.any() else 0.0,
+            "residual_p95": float(np.quantile(self.residuals[predicted], 0.95)) if predicted.any() else 0.0,
+            "scale": float(self.normalization.scale),
+        }
+
+
+def complete(
+    points,
+    model=None,
+    *,
+    normalize: str = "auto",
+    output_points: int = 16384,
+    keep_input: bool = True,
+    solver: str = "batched",
+    threads: int = 0,
+) -> Completion:
+    """Complete a partial cloud.
+
+    Parameters
+    ----------
+    points : (N, 3) float, the partial scan, N >= 16 distinct points, any pose.
+    model : path to an .onnx model, a loaded `CompletionModel`, or None for the default.
+    normalize : "auto" scales the scan so its radius matches the training partials
+        (rotation invariant, exactly inverted afterwards); "none" feeds it as is (for
+        data already in PCN units).
+    output_points : M, the size of the returned cloud.
+    keep_input : merge the observed points into the output.
+    solver : "batched" (fast, guarded LM) or "scipy" (per-point reference LM).
+
+    Returns
+    -------
+    Completion
+    """
+    from escape_cli.anchors import select_anchors
+    from escape_cli.encoding import distance_matrix
+    from escape_cli.inference import CompletionModel, load_model
+    from escape_cli.normalize import Normalization, fit_normalization
+    from escape_cli.reconstruction import reconstruct
+    from escape_cli.sampling import prepare_input
+
+    if normalize not in NORMALIZE_MODES:
+        raise ValueError(f"normalize must be one of {NORMALIZE_MODES}, got {normalize!r}")
+    if output_points < 1:
+        raise PointCloudError(f"output size must be positive, got {output_points}")
+    pts = as_points(points, "input cloud", min_points=1)
+    distinct = count_distinct(pts)
+    if distinct < MIN_INPUT_POINTS:
+        raise PointCloudError(f"the input has {distinct} distinct points; at least {MIN_INPUT_POINTS} are needed to complete it")
+    net = model if isinstance(model, CompletionModel) else load_model(None if model is None else str(model), threads)
+
+    if normalize == "auto" and net.target_radius:
+        norm = fit_normalization(pts, net.target_radius)
+    else:
+        norm = Normalization.identity()
+    prepared, unique = prepare_input(norm.apply(pts), net.input_points)  # (N', 3)
+    a = net.anchors
+    anchors = select_anchors(prepared[:unique], a.k, a.method, a.radius, a.knn)  # (K, 3)
+    features = distance_matrix(prepared, anchors.points)  # (N', K)
+    predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
+    rec = reconstruct(predicted, anchors.points, method=solver, reference_points=prepared[:unique])
+
+    out = rec.points  # (M', 3)
+    residuals = rec.residuals  # (M',)
+    observed = np.zeros(len(out), dtype=bool)
+    if keep_input:
+        out = np.concatenate([out, prepared[:unique]])
+        residuals = np.concatenate([residuals, np.zeros(unique)])
+        observed = np.concatenate([observed, np.ones(unique, dtype=bool)])
+    rows = resample_rows(len(out), output_points)
+    return Completion(
+        points=norm.invert(out[rows]),
+        residuals=residuals[rows] * norm.scale,
+        is_observed=observed[rows],
+        anchors=norm.invert(anchors.points),
+        anchor_indices=anchors.indices,
+        near_planar=bool(rec.near_planar),
+        normalization=norm,
+    )
+
+
+def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
+    """Deterministic rows to turn `count` points into `size`: a seeded subset, or all plus repeats.
+
+    Depends only on the counts, so it commutes with any rotation of the points.
+    """
+    if size == count:
+        return np.arange(count)
+    rng = np.random.default_rng(seed)
+    if size < count:
+        return np.sort(rng.choice(count, size, replace=False))
+    extra = rng.choice(count, size - count, replace=size - count > count)
+    return np.concatenate([np.arange(count), extra])
+
+
+def model_path_or_default(path: Path | None) -> Path:
+    from escape_cli.inference import default_model_path
+
+    return Path(path) if path else default_model_path()

@@ -1,0 +1,64 @@
+"""`escape_cli.complete`: end-to-end equivariance, sizes, normalisation, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from escape_cli import complete
+from escape_cli.errors import DegenerateGeometryError, PointCloudError
+from escape_cli.metrics import chamfer_l1
+from escape_cli.rotations import random_rotation
+from tests_support import partial_cloud
+
+
+def test_complete_is_equivariant(tiny_model, rng):
+    cloud = partial_cloud(rng, 500)
+    base = complete(cloud, tiny_model, output_points=1024)
+    assert base.points.shape == (1024, 3)
+    for i in range(10):
+        r = random_rotation(rng)
+        t = rng.normal(scale=3.0, size=3)
+        moved = (cloud @ r.T + t)[rng.permutation(len(cloud))]
+        out = complete(moved, tiny_model, output_points=1024)
+        want = base.points @ r.T + t
+        assert chamfer_l1(out.points, want) < 1e-4, f"rotation {i}"
+        assert np.allclose(out.anchors, base.anchors @ r.T + t, atol=1e-6)
+
+
+def test_output_in_input_frame_and_units(tiny_model, rng):
+    cloud = partial_cloud(rng, 400)
+    in_metres = cloud * 7.0 + np.array([100.0, -20.0, 3.0])
+    a = complete(cloud, tiny_model, output_points=800)
+    b = complete(in_metres, tiny_model, output_points=800)
+    # auto normalisation is scale and translation covariant
+    assert chamfer_l1(b.points, a.points * 7.0 + np.array([100.0, -20.0, 3.0])) < 1e-3
+    assert np.allclose(b.residuals, a.residuals * 7.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("size", [16, 100, 5000])
+def test_any_input_size(tiny_model, rng, size):
+    cloud = partial_cloud(rng, size)
+    out = complete(cloud, tiny_model, output_points=300)
+    assert out.points.shape == (300, 3) and np.all(np.isfinite(out.points))
+
+
+def test_keep_input_merges_observed_points(tiny_model, rng):
+    cloud = partial_cloud(rng, 300)
+    kept = complete(cloud, tiny_model, output_points=2000, keep_input=True)
+    assert kept.is_observed.sum() > 0
+    observed = kept.points[kept.is_observed]
+    assert np.min(np.linalg.norm(observed[:, None] - cloud[None], axis=2), axis=1).max() < 1e-9
+    alone = complete(cloud, tiny_model, output_points=2000, keep_input=False)
+    assert alone.is_observed.sum() == 0
+
+
+def test_too_small_and_degenerate_inputs(tiny_model):
+    with pytest.raises(PointCloudError):
+        complete(np.zeros((0, 3)), tiny_model)
+    with pytest.raises(PointCloudError, match="distinct"):
+        complete(np.random.default_rng(0).random((10, 3)), tiny_model)
+    with pytest.raises(PointCloudError):
+        complete(np.full((100, 3), np.nan), tiny_model)
+    with pytest.raises(DegenerateGeometryError):
+        complete(np.outer(np.linspace(0, 1, 100), [1.0, 2.0, 3.0]), tiny_model)

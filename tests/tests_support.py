@@ -1,0 +1,71 @@
+"""Helpers shared by several test modules (not fixtures)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def write_tiny_checkpoint(path, seed: int = 0):
+    """A checkpoint in the layout `escape train` writes, for an untrained tiny network."""
+    import torch
+
+    from escape_cli.nn.config import get_preset
+    from escape_cli.nn.model import EscapeNet
+
+    torch.manual_seed(seed)
+    config = get_preset("tiny")
+    net = EscapeNet(config).eval()
+    torch.save(
+        {
+            "model": net.state_dict(), "config": config.to_dict(), "step": 0, "elapsed": 0.0,
+            "options": {"config": "tiny", "seed": seed, "include_observed": True},
+            "anchors": {"k": 8, "method": "ball", "radius": 0.075, "knn": 16},
+            "parameters": sum(p.numel() for p in net.parameters()), "input_radius": 0.25,
+        },
+        path,
+    )
+    return net
+
+
+def partial_cloud(rng: np.random.Generator, n: int = 600) -> np.ndarray:
+    """(n, 3) points on one side of a random ellipsoid: a stand-in for a partial scan."""
+    pts = rng.normal(size=(n * 3, 3))
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    pts *= rng.uniform(0.2, 0.5, size=3)
+    return pts[pts[:, 0] > 0][:n]
+
+
+def ellipsoid_surface(rng: np.random.Generator, n: int, radii) -> np.ndarray:
+    """(n, 3) points on an ellipsoid surface."""
+    pts = rng.normal(size=(n, 3))
+    pts /= np.linalg.norm(pts, axis=1, keepdims=True)
+    return pts * np.asarray(radii)
+
+
+def write_tiny_pcn_tree(root, seed: int = 0, objects: int = 2, views: int = 2, complete_points: int = 2048) -> dict:
+    """A small PCN-layout tree of ellipsoids (two categories), written with the project's writer.
+
+    Partials are the half of the surface facing a random direction. Returns
+    {split: [(synset, model_id), ...]}.
+    """
+    from escape_cli.data.pcn import write_model, write_split_file
+
+    rng = np.random.default_rng(seed)
+    ids: dict[str, dict[str, list[str]]] = {}
+    made: dict[str, list] = {}
+    for split in ("train", "val", "test"):
+        for synset in ("03001627", "04379243"):
+            for j in range(objects):
+                model_id = f"{split}{j:03d}"
+                radii = rng.uniform(0.15, 0.45, size=3)
+                complete = ellipsoid_surface(rng, complete_points, radii)
+                partials = []
+                for _ in range(views if split == "train" else 1):
+                    direction = rng.normal(size=3)
+                    dense = ellipsoid_surface(rng, 1200, radii)
+                    partials.append(dense[dense @ direction > 0])
+                write_model(root, split, synset, model_id, complete, partials)
+                ids.setdefault(synset, {}).setdefault(split, []).append(model_id)
+                made.setdefault(split, []).append((synset, model_id))
+    write_split_file(root, ids)
+    return made
