@@ -25,6 +25,7 @@ demo: install
 
 bench: install
 	$(BIN)/python bench/bench_reconstruction.py
+	$(BIN)/python bench/bench_complete.py
 
 clean:
 	rm -rf $(VENV) build src/*.egg-info .pytest_cache

@@ -28,8 +28,7 @@ def realdata_clouds() -> list[Path]:
     """Every point-cloud file under ../shared/realdata (empty where it is absent)."""
     if not REALDATA.is_dir():
         return []
-    suffixes = {".pcd", ".ply", ".xyz", ".txt", ".pts", ".npy"}
-    return sorted(p for p in REALDATA.rglob("*") if p.suffix.lower() in suffixes and p.is_file())
+    return sorted(p for p in REALDATA.rglob("*") if p.suffix.lower() in (".pcd", ".ply") and p.is_file())
 
 
 @pytest.fixture(scope="session")

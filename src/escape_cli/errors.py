@@ -33,3 +33,7 @@ class ModelError(EscapeError):
 
 class DatasetError(EscapeError):
     """A dataset folder does not have the expected layout."""
+
+
+class OutputFileError(EscapeError):
+    """An output cannot be written: missing directory, no permission, not a file."""

@@ -33,6 +33,7 @@ class CompletionJob:
         solver: str
         fmt: str | None
         overwrite: bool
+        input_format: str | None = None
         threads: int = 0
 
 
@@ -65,21 +66,22 @@ def plan_jobs(inputs, output: str, *, fmt, anchors_out, recursive: bool, overwri
 
 def complete_file(job: CompletionJob, settings: CompletionJob.Settings) -> dict:
     """Read, complete and write one file; returns its JSON summary (raises EscapeError)."""
-    from escape_cli.cli.options import check_output
-    from escape_cli.io import read_points, write_points
+    from escape_cli.cli.options import check_output, errors_about
+    from escape_cli.io import display_name, output_format, read_points, write_points
     from escape_cli.pipeline import complete
 
     start = time.perf_counter()
     check_output(job.output, settings.overwrite)
     check_output(job.anchors, settings.overwrite)
-    out_fmt = settings.fmt or (None if job.output != "-" else "ply")
-    if settings.residuals and (out_fmt or Path(job.output).suffix.lstrip(".").lower()) == "npy":
+    out_fmt = output_format(job.output, settings.fmt)
+    if settings.residuals and out_fmt == "npy":
         raise InputFileError("--residuals needs a ply, pcd, xyz or npz output (npy holds coordinates only)")
-    cloud = read_points(job.source)
-    result = complete(
-        cloud, settings.model, normalize=settings.normalize, output_points=settings.points,
-        keep_input=settings.keep_input, solver=settings.solver, threads=settings.threads,
-    )
+    cloud = read_points(job.source, settings.input_format)
+    with errors_about(display_name(job.source) if job.source != "-" else "<stdin>"):
+        result = complete(
+            cloud, settings.model, normalize=settings.normalize, output_points=settings.points,
+            keep_input=settings.keep_input, solver=settings.solver, threads=settings.threads,
+        )
     fields = {"residual": result.residuals, "observed": result.is_observed.astype("float32")} if settings.residuals else None
     write_points(job.output, result.points, out_fmt, overwrite=settings.overwrite, fields=fields)
     if job.anchors:

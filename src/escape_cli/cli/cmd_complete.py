@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import FORMAT, OVERWRITE
+from escape_cli.cli.options import FORMAT, INPUT_FORMAT, OVERWRITE
 
 
 def command(
@@ -24,6 +24,7 @@ def command(
     solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),
     workers: int = typer.Option(1, "--workers", "-w", min=1, help="Files completed in parallel."),
     fmt: Optional[str] = FORMAT,
+    input_format: Optional[str] = INPUT_FORMAT,
     recursive: bool = typer.Option(False, "--recursive", "-r", help="Look for clouds in sub-folders too."),
     json_out: bool = typer.Option(False, "--json", help="Per-file JSON summaries on stdout (else on stderr)."),
     overwrite: bool = OVERWRITE,
@@ -39,7 +40,7 @@ def command(
     jobs = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, overwrite=overwrite)
     settings = CompletionJob.Settings(
         model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
-        residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
+        residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite, input_format=input_format,
     )
     summary_stream = sys.stdout if json_out and output != "-" else sys.stderr
     failures = run_jobs(jobs, settings, workers=workers, summary_stream=summary_stream)

@@ -1,5 +1,114 @@
-"""`escape dataset` (being written)."""
+"""`escape dataset`: make a PCN-layout training set from procedural shapes, and inspect datasets."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
 
 import typer
 
-app = typer.Typer(help="Make and inspect training datasets.", no_args_is_help=True)
+from escape_cli.cli.options import JSON_OUT, OVERWRITE, print_summary
+
+app = typer.Typer(help="Make and inspect training datasets (PCN layout).", no_args_is_help=True)
+
+CATEGORIES_OPTION = typer.Option(
+    None, "--categories", "-c",
+    help="Categories by name or synset (repeat or comma-separate); default: all 8 PCN categories.",
+)
+
+
+@app.command("synth")
+def synth(
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (must be empty unless --overwrite)."),
+    train: int = typer.Option(0, "--train", min=0, help="Training objects PER CATEGORY."),
+    val: int = typer.Option(0, "--val", min=0, help="Validation objects PER CATEGORY."),
+    test: int = typer.Option(0, "--test", min=0, help="Test objects PER CATEGORY."),
+    seed: int = typer.Option(0, "--seed", help="Run seed; same seed, byte-identical point files."),
+    views: int = typer.Option(8, "--views", min=1, max=100, help="Partial views per training object (PCN: 8)."),
+    eval_views: int = typer.Option(1, "--eval-views", min=1, max=100, help="Partial views per val/test object (PCN: 1)."),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, max=256, help="Worker processes (results do not depend on it)."),
+    categories: Optional[List[str]] = CATEGORIES_OPTION,
+    complete_points: int = typer.Option(16384, "--complete-points", min=16, help="Points per complete cloud (PCN: 16384)."),
+    overwrite: bool = OVERWRITE,
+    json_out: bool = JSON_OUT,
+) -> None:
+    """Generate procedural shapes of the PCN categories in the PCN folder layout.
+
+    Each object: a complete cloud (points on its outer surface) and partial clouds (depth views).
+
+    Writes OUT/{train,val,test}/{partial,complete}/..., OUT/PCN.json and OUT/escape_synth.json.
+    """
+    import json
+    import logging
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from escape_cli.data.pcn import resolve_categories
+    from escape_cli.data.synth import SynthConfig, check_config, prepare_output, synthesize
+    from escape_cli.errors import DatasetError
+
+    if train + val + test == 0:
+        raise DatasetError("nothing to generate: give --train, --val and/or --test a positive count (objects per category)")
+    config = SynthConfig(
+        objects_per_category={"train": train, "val": val, "test": test},
+        views={"train": views, "val": eval_views, "test": eval_views},
+        categories=tuple(resolve_categories(categories)),
+        seed=seed,
+        complete_points=complete_points,
+    )
+    check_config(config)
+    prepare_output(out, overwrite)  # refuse a non-empty folder before any progress bar shows
+    total = len(config.jobs())
+    quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
+    progress = Progress(
+        TextColumn("[bold]synth[/bold]"), BarColumn(), MofNCompleteColumn(), TextColumn("objects"),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), disable=quiet,
+    )
+    with progress:
+        task = progress.add_task("synth", total=total)
+        metadata = synthesize(out, config, workers=workers, overwrite=True,
+                              on_object=lambda _result: progress.advance(task))
+    timing = metadata["timing"]
+    print_summary(
+        f"escape: wrote {metadata['totals']['objects']} objects, {metadata['totals']['partial_views']} partial views "
+        f"to {out} in {timing['elapsed_s']:.1f} s ({timing['objects_per_s']:.2f} objects/s, "
+        f"{timing['views_per_s']:.1f} views/s)"
+    )
+    if json_out:
+        typer.echo(json.dumps(metadata))
+
+
+@app.command("info")
+def info(
+    root: Path = typer.Argument(..., help="Dataset root in the PCN layout."),
+    categories: Optional[List[str]] = CATEGORIES_OPTION,
+    json_out: bool = JSON_OUT,
+) -> None:
+    """Count the models and partial views per split and category of a PCN-layout dataset."""
+    import json
+
+    from escape_cli.data.pcn import CATEGORIES, SPLITS, list_samples, resolve_categories
+    from escape_cli.errors import DatasetError
+
+    synsets = resolve_categories(categories)
+    counts: dict[str, dict[str, dict[str, int]]] = {}
+    for split in SPLITS:
+        try:
+            refs = list_samples(root, split, synsets)
+        except DatasetError:
+            if not Path(root).is_dir():
+                raise
+            continue
+        per_category = counts.setdefault(split, {})
+        for synset in synsets:
+            mine = [r for r in refs if r.synset == synset]
+            per_category[CATEGORIES[synset]] = {"models": len({r.model_id for r in mine}), "views": len(mine)}
+    if not counts:
+        raise DatasetError(f"{root}: no split with samples (PCN layout expected)")
+    if json_out:
+        typer.echo(json.dumps(counts))
+        return
+    for split, per_category in counts.items():
+        for name, c in per_category.items():
+            typer.echo(f"{split}\t{name}\t{c['models']} models\t{c['views']} views")

@@ -1,8 +1,67 @@
-"""`escape decode` (being written)."""
+"""`escape decode`: recover points from their distances to the anchors (Levenberg-Marquardt)."""
+
+from __future__ import annotations
+
+from typing import Literal, Optional
 
 import typer
 
+from escape_cli.cli.options import ASCII, FORMAT, OVERWRITE, check_output, errors_about, print_summary
 
-def command() -> None:
-    """Not available yet."""
-    raise typer.Exit(3)
+
+def command(
+    distances_path: str = typer.Argument(..., metavar="DIST", help="(M, K) distance matrix .npy ('-' for stdin)."),
+    anchors_path: str = typer.Option(..., "--anchors", "-a", help="The K anchors the distances refer to."),
+    output: str = typer.Option(..., "--output", "-o", help="Point cloud to write ('-' for stdout, binary PLY)."),
+    solver: Literal["batched", "scipy"] = typer.Option(
+        "batched", "--solver", help="batched: vectorised LM (fast); scipy: per-point least_squares (reference)."
+    ),
+    residuals: bool = typer.Option(
+        False, "--residuals", help="Add each point's RMS distance residual as a scalar field 'residual'."
+    ),
+    fmt: Optional[str] = FORMAT,
+    ascii_body: bool = ASCII,
+    overwrite: bool = OVERWRITE,
+) -> None:
+    """Reconstruct coordinates from distances to anchors, e.g. those written by `escape encode`.
+
+    Prints one summary line on stderr (points, mean/max residual, anchor spread)
+    unless -q.
+    """
+    import numpy as np
+
+    from escape_cli.errors import InputFileError, OutputFileError, PointCloudError
+    from escape_cli.io import display_name, output_format, read_array, read_points, write_points
+    from escape_cli.reconstruction import reconstruct
+
+    if distances_path == "-" and anchors_path == "-":
+        raise InputFileError("distances and anchors cannot both come from stdin")
+    out_format = output_format(output, fmt)  # an unknown format fails now, not after the work
+    if residuals and out_format == "npy":
+        raise OutputFileError("--residuals needs a ply, pcd, xyz, txt, pts, csv or npz output (npy holds x y z only)")
+    check_output(output, overwrite)
+
+    # Distances before anchors: in `encode -o - | decode - --anchors A`, A is complete
+    # once stdin has ended.
+    distances_name = display_name(distances_path)
+    distances = read_array(distances_path)  # (M, K)
+    if distances.ndim != 2 or distances.shape[0] == 0:
+        raise PointCloudError(f"{distances_name}: distances have shape {distances.shape}; expected (M, K) with M >= 1")
+    if not np.all(np.isfinite(distances)):
+        raise PointCloudError(f"{distances_name}: distances contain NaN or infinite values")
+    anchors = read_points(anchors_path)  # (K, 3)
+    if distances.shape[1] != len(anchors):
+        raise PointCloudError(
+            f"{distances_name} has {distances.shape[1]} distances per point but {anchors_path} holds "
+            f"{len(anchors)} anchors; decode with the anchors the distances were encoded with"
+        )
+    with errors_about(str(anchors_path)):
+        result = reconstruct(distances, anchors, method=solver)
+
+    fields = {"residual": result.residuals} if residuals else None
+    write_points(output, result.points, fmt, overwrite=overwrite, fields=fields, binary=not ascii_body)
+    spread = "near-planar (two-sided starts used)" if result.near_planar else "well spread"
+    print_summary(
+        f"decoded {len(result.points)} points from {len(anchors)} anchors ({solver}): residual mean "
+        f"{result.residuals.mean():.3g}, max {result.residuals.max():.3g}; anchors {spread} -> {output}"
+    )

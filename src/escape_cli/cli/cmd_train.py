@@ -22,6 +22,7 @@ def command(
     val_limit: int = typer.Option(400, "--val-limit", help="Validation samples used."),
     denoise: float = typer.Option(0.0, "--denoise", help="Jitter input points by this sigma (denoising term)."),
     categories: Optional[List[str]] = typer.Option(None, "--categories", help="Category names or synsets."),
+    views: Optional[int] = typer.Option(None, "--views", min=1, help="Use the first V partial views of each training object (default: all)."),
     workers: int = typer.Option(2, "--workers", help="Processes for preparing the data."),
     threads: int = typer.Option(0, "--threads", help="Torch threads (0: default)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="Stop after this many steps."),
@@ -38,7 +39,7 @@ def command(
     options = TrainOptions(
         data=str(data), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
         device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
-        categories=tuple(categories) if categories else None, workers=workers, threads=threads,
+        categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
         max_steps=max_steps,
     )
     trainer = Trainer(options, resume=resume)

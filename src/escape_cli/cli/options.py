@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, Optional
 
 import typer
 
@@ -22,3 +23,43 @@ def check_output(path: Optional[Path | str], overwrite: bool) -> None:
         return
     if Path(path).exists() and not overwrite:
         raise OutputExistsError(f"{path} exists (use --overwrite to replace it)")
+
+
+# --- anchors, input format, ascii bodies, summaries (anchors / encode / decode) ---
+
+ANCHOR_K = typer.Option(8, "--k", "-k", help="Number of anchors (at least 4).")
+ANCHOR_METHOD = typer.Option(
+    "ball", "--method", help="Anchor choice: ball (FPS refined to high curvature), fps, or cluster."
+)
+ANCHOR_RADIUS = typer.Option(0.075, "--radius", help="Search radius of the ball refinement, in the cloud's units.")
+ANCHOR_KNN = typer.Option(16, "--knn", help="Neighbours for the curvature estimate.")
+INPUT_FORMAT = typer.Option(
+    None, "--input-format", help="Input file format; default: from the extension (sniffed for stdin)."
+)
+ASCII = typer.Option(False, "--ascii", help="Write PLY/PCD with a text body instead of binary.")
+
+
+def print_summary(line: str) -> None:
+    """Print one human-readable line on stderr, unless -q was given."""
+    import logging
+    import sys
+
+    if logging.getLogger("escape").isEnabledFor(logging.WARNING):
+        print(line, file=sys.stderr)
+
+
+@contextmanager
+def errors_about(name: str) -> Iterator[None]:
+    """Prefix the escape errors raised inside the block with `name` (the file concerned).
+
+    A core function's "has 5 points; at least 8 needed" becomes
+    "scan.ply: has 5 points; at least 8 needed".
+    """
+    from escape_cli.errors import EscapeError
+
+    try:
+        yield
+    except EscapeError as err:
+        if str(err).startswith(f"{name}:"):
+            raise
+        raise type(err)(f"{name}: {err}") from None

@@ -76,13 +76,19 @@ def prepare_split(
     cache_dir: Path,
     categories=None,
     views: str = "all",
+    max_views: int | None = None,
     workers: int = 2,
     limit: int | None = None,
 ) -> PreparedSplit:
-    """Read a PCN-layout split and prepare every partial, using a cache in `cache_dir`."""
+    """Read a PCN-layout split and prepare every partial, using a cache in `cache_dir`.
+
+    `max_views` keeps the first V views of each object; `limit` the first samples.
+    """
     from escape_cli.data.pcn import list_samples, read_pcd
 
     refs = list_samples(root, split, categories=categories, views=views)
+    if max_views is not None:
+        refs = [r for r in refs if r.view < max_views]
     if limit is not None:
         refs = refs[:limit]
     key = hashlib.sha1(

@@ -37,9 +37,10 @@ class TrainOptions:
     min_lr_ratio: float = 0.02
     seed: int = 0
     device: str = "cpu"
-    gt_points: int = 4096  # ground-truth subsample per step for the loss
-    coarse_gt_points: int = 1024
-    fold_subset: int = 16  # rebuilt points per query used per step (of `fold`)
+    gt_points: int = 2048  # ground-truth subsample per step for the loss
+    coarse_gt_points: int = 512
+    fold_subset: int = 8  # rebuilt points per query used per step (of `fold`)
+    views_per_object: int | None = None  # train on the first V views of each object (None: all)
     coarse_weight: float = 1.0
     include_observed: bool = True  # the input's own rows join the prediction in the loss
     denoise_sigma: float = 0.0  # Gaussian jitter on input points; the target stays clean
@@ -84,7 +85,9 @@ class Trainer:
             input_points=self.config.input_points, settings=options.anchors, cache_dir=cache,
             categories=options.categories, workers=options.workers,
         )
-        self.train_data: PreparedSplit = prepare_split(Path(options.data), "train", **common)
+        self.train_data: PreparedSplit = prepare_split(
+            Path(options.data), "train", max_views=options.views_per_object, **common
+        )
         self.val_data: PreparedSplit = prepare_split(
             Path(options.data), "val", views="first", limit=options.val_limit, **common
         )

@@ -1,0 +1,72 @@
+"""Helpers shared by the format modules: number parsing and text formatting."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+from escape_cli.errors import InputFileError
+
+# A reader returns the coordinates and the other per-point scalar fields:
+#   xyz : (N, 3) float64 (non-finite rows still in), fields : name -> (N,) float64.
+Fields = dict[str, np.ndarray]
+
+# Enough significant digits to give back the exact binary value.
+SIGNIFICANT_DIGITS = {np.dtype(np.float32): 9, np.dtype(np.float64): 17}
+
+
+def tokens_to_float(tokens: list[bytes], name: str, what: str) -> np.ndarray:
+    """Convert number tokens to float64, or raise a one-line error naming the bad token.
+
+    Parameters
+    ----------
+    tokens : list of bytes
+        Decimal numbers (``nan``/``inf`` accepted).
+    name : str
+        The file, for the message.
+    what : str
+        What the tokens are ("vertex data", "line 3"), for the message.
+
+    Returns
+    -------
+    (T,) float64
+    """
+    try:
+        return np.array(tokens, dtype=np.bytes_).astype(np.float64)
+    except (ValueError, UnicodeDecodeError):
+        for token in tokens:
+            try:
+                float(token)
+            except (ValueError, UnicodeDecodeError):
+                shown = token[:20].decode("ascii", errors="backslashreplace")
+                raise InputFileError(f"{name}: {what}: '{shown}' is not a number") from None
+        raise InputFileError(f"{name}: {what}: not numbers") from None
+
+
+def format_rows(columns: list[np.ndarray], dtypes: list[np.dtype], separator: str = " ") -> bytes:
+    """Text rows, one per point, each value with enough digits for its dtype.
+
+    Parameters
+    ----------
+    columns : list of (N,) arrays
+    dtypes : list of numpy dtypes, one per column (float32 or float64).
+    separator : str
+
+    Returns
+    -------
+    bytes
+        N lines, each ending in a newline.
+    """
+    if not columns:
+        return b""
+    table = np.column_stack([np.asarray(c, dtype=np.float64) for c in columns])
+    formats = [f"%.{SIGNIFICANT_DIGITS[np.dtype(d)]}g" for d in dtypes]
+    # round float32 columns first: 9 significant digits of the float32 value read back
+    # as exactly that float32
+    for j, dtype in enumerate(dtypes):
+        if np.dtype(dtype) == np.float32:
+            table[:, j] = table[:, j].astype(np.float32)
+    buffer = io.BytesIO()
+    np.savetxt(buffer, table, fmt=formats, delimiter=separator)
+    return buffer.getvalue()

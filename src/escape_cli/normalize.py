@@ -1,0 +1,314 @@
+"""Normalisations with exact inverses: centroid + radius (any scan) and KITTI box frames.
+
+The network only knows the scale it was trained at (distances are rotation- and
+translation-invariant, not scale-invariant). `fit_normalization` brings a real scan
+(metres, anywhere) to that scale with a rotation-invariant centre and radius;
+`box_normalization` is the PCN/PoinTr convention for KITTI cars, which uses the
+detector's box instead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from escape_cli.errors import DegenerateGeometryError, EscapeError, PointCloudError
+
+__all__ = [
+    "Normalization",
+    "cloud_radius",
+    "cloud_radius_naive",
+    "fit_normalization",
+    "BoxNormalization",
+    "box_normalization",
+]
+
+
+def _as_points(points, name: str = "points") -> np.ndarray:
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise PointCloudError(f"{name} must have shape (N, 3), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
+    return arr
+
+
+def _as_vector3(value, name: str) -> np.ndarray:
+    vec = np.asarray(value, dtype=np.float64).reshape(-1)
+    if vec.shape != (3,) or not np.all(np.isfinite(vec)):
+        raise EscapeError(f"{name} must be 3 finite numbers, got {np.shape(value)}")
+    vec = vec.copy()
+    vec.setflags(write=False)
+    return vec
+
+
+def _as_scale(value, name: str = "scale") -> float:
+    s = float(value)
+    if not np.isfinite(s) or s <= 0.0:
+        raise EscapeError(f"{name} must be a positive finite number, got {value}")
+    return s
+
+
+# ------------------------------------------------------------ centroid + radius
+
+
+@dataclass(frozen=True, eq=False)
+class Normalization:
+    """A similarity without rotation: ``apply(p) = (p - center) / scale``.
+
+    Attributes
+    ----------
+    center : (3,) float64
+        Subtracted first (read-only array).
+    scale : float
+        Divided by next; > 0.
+    """
+
+    center: np.ndarray
+    scale: float
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "center", _as_vector3(self.center, "center"))
+        object.__setattr__(self, "scale", _as_scale(self.scale))
+
+    @classmethod
+    def identity(cls) -> "Normalization":
+        """The normalisation that changes nothing (centre 0, scale 1): 'turned off'."""
+        return cls(np.zeros(3), 1.0)
+
+    def apply(self, points) -> np.ndarray:
+        """(N, 3) points in the input frame -> (N, 3) normalised points."""
+        return (_as_points(points) - self.center) / self.scale
+
+    def invert(self, points) -> np.ndarray:
+        """(N, 3) normalised points -> (N, 3) points in the input frame."""
+        return _as_points(points) * self.scale + self.center
+
+    def to_dict(self) -> dict:
+        """JSON-ready ``{"center": [x, y, z], "scale": s}``."""
+        return {"center": [float(v) for v in self.center], "scale": float(self.scale)}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Normalization":
+        """Inverse of `to_dict`; raises EscapeError on missing keys or bad values."""
+        try:
+            return cls(data["center"], data["scale"])
+        except (KeyError, TypeError) as exc:
+            raise EscapeError(f"not a normalisation record (need 'center' and 'scale'): {exc}") from exc
+
+
+def cloud_radius(points, quantile: float | None = None) -> float:
+    """A rotation-invariant radius of a cloud about its centroid.
+
+    With ``quantile=None`` (the default) the RMS distance from the centroid,
+
+        r = sqrt( mean_i ||p_i - mean(p)||^2 ),
+
+    which is smooth in the points and unchanged by rotation, translation and point
+    order. With ``quantile=q`` the q-quantile of ||p_i - mean(p)|| instead (less
+    sensitive to a few stray points, but a step function of them).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    quantile : float in (0, 1] or None
+
+    Returns
+    -------
+    float
+        Raises DegenerateGeometryError when the radius is zero (all points equal).
+    """
+    pts = _as_points(points)
+    if len(pts) == 0:
+        raise PointCloudError("cannot measure the radius of an empty cloud (shape (0, 3))")
+    centred = pts - pts.mean(axis=0)  # (N, 3)
+    dist = np.sqrt((centred * centred).sum(axis=1))  # (N,)
+    if quantile is None:
+        radius = float(np.sqrt(np.mean(dist * dist)))
+    else:
+        q = float(quantile)
+        if not 0.0 < q <= 1.0:
+            raise EscapeError(f"radius quantile must be in (0, 1], got {quantile}")
+        radius = float(np.quantile(dist, q))
+    extent = float(np.abs(pts).max())
+    if not radius > 1e-12 * max(extent, 1e-300):
+        raise DegenerateGeometryError(
+            f"cloud of {len(pts)} points has zero radius (all points equal): cannot normalise"
+        )
+    return radius
+
+
+def cloud_radius_naive(points) -> float:
+    """Reference for `cloud_radius` (RMS): a plain loop over the points."""
+    pts = [tuple(map(float, p)) for p in np.asarray(points, dtype=np.float64)]
+    n = len(pts)
+    c = [sum(p[k] for p in pts) / n for k in range(3)]
+    return float(np.sqrt(sum(sum((p[k] - c[k]) ** 2 for k in range(3)) for p in pts) / n))
+
+
+def fit_normalization(points, target_radius: float, quantile: float | None = None) -> Normalization:
+    """The normalisation that centres a cloud and gives it `target_radius`.
+
+    center = mean of the points; scale = cloud_radius(points) / target_radius, so
+    ``cloud_radius(norm.apply(points)) == target_radius``. Both are rotation-invariant
+    in the sense that fitting on ``points @ R.T + t`` gives the centre ``R c + t`` and
+    the same scale.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        The partial scan, in its own units.
+    target_radius : float
+        The radius statistic of the network's training partials (measure it with
+        `cloud_radius` on them, with the same `quantile`).
+    quantile : float or None
+        Passed to `cloud_radius`.
+
+    Returns
+    -------
+    Normalization
+    """
+    target = _as_scale(target_radius, "target_radius")
+    pts = _as_points(points)
+    radius = cloud_radius(pts, quantile=quantile)
+    return Normalization(pts.mean(axis=0), radius / target)
+
+
+# ------------------------------------------------------------------ KITTI boxes
+
+
+@dataclass(frozen=True, eq=False)
+class BoxNormalization:
+    """A rigid motion plus a scale into a box's frame: ``apply(p) = rotation @ (p - center) / scale``.
+
+    Unpacks as a tuple: ``rotation, center, scale = box_normalization(corners)``.
+
+    Attributes
+    ----------
+    rotation : (3, 3) float64
+        Orthonormal; its rows are the box axes expressed in the input frame. With the
+        PCN axes (the default of `box_normalization`) the determinant is -1 (see there).
+    center : (3,) float64
+        The box centre in the input frame.
+    scale : float
+        The box length.
+    """
+
+    rotation: np.ndarray
+    center: np.ndarray
+    scale: float
+
+    def __post_init__(self) -> None:
+        rot = np.asarray(self.rotation, dtype=np.float64)
+        if rot.shape != (3, 3) or not np.all(np.isfinite(rot)):
+            raise EscapeError(f"rotation must be a finite (3, 3) matrix, got shape {rot.shape}")
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9):
+            raise EscapeError("rotation must be orthonormal")
+        rot = rot.copy()
+        rot.setflags(write=False)
+        object.__setattr__(self, "rotation", rot)
+        object.__setattr__(self, "center", _as_vector3(self.center, "center"))
+        object.__setattr__(self, "scale", _as_scale(self.scale))
+
+    def __iter__(self):
+        return iter((self.rotation, self.center, self.scale))
+
+    def apply(self, points) -> np.ndarray:
+        """(N, 3) points in the LiDAR frame -> (N, 3) points in the box frame."""
+        return ((_as_points(points) - self.center) @ self.rotation.T) / self.scale  # (N, 3)
+
+    def invert(self, points) -> np.ndarray:
+        """(N, 3) points in the box frame -> (N, 3) points in the LiDAR frame."""
+        return (_as_points(points) * self.scale) @ self.rotation + self.center  # (N, 3)
+
+    def to_dict(self) -> dict:
+        """JSON-ready ``{"rotation": 3x3 list, "center": [x, y, z], "scale": s}``."""
+        return {
+            "rotation": [[float(v) for v in row] for row in self.rotation],
+            "center": [float(v) for v in self.center],
+            "scale": float(self.scale),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "BoxNormalization":
+        """Inverse of `to_dict`."""
+        try:
+            return cls(data["rotation"], data["center"], data["scale"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise EscapeError(
+                f"not a box normalisation record (need 'rotation', 'center', 'scale'): {exc}"
+            ) from exc
+
+
+def box_normalization(corners, pcn_axes: bool = True, tol: float = 0.02) -> BoxNormalization:
+    """The KITTI car normalisation of PCN and PoinTr, from a box's 8 corners.
+
+    Corners are in PCN order (wentaoyuan/pcn ``process_kitti_raw.py``): 0-3 the bottom
+    face going round, 4-7 the top face above them, ``bbox[3] - bbox[0]`` along the
+    length and ``bbox[4] - bbox[0]`` up. Then
+
+    - center = mean of the 8 corners (the box centre);
+    - u = unit(bbox[3] - bbox[0]) (length axis), w = bbox[4] - bbox[0] made
+      orthogonal to u and unit (up axis);
+    - scale = ||bbox[3] - bbox[0]|| (the box length), so the car spans [-0.5, 0.5]
+      along its length;
+    - ``pcn_axes=True``: rotation rows (u, w, w x u): x = length, y = up, z = lateral,
+      which is PCN's ``np.dot(p - center, Rz(yaw)) / scale`` followed by its y/z swap
+      ``[[1, 0, 0], [0, 0, 1], [0, 1, 0]]`` -- the ShapeNet frame (y up) the PCN car
+      models live in. That swap is a reflection, so det(rotation) = -1.
+      ``pcn_axes=False``: rows (u, w x u, w): x = length, y = lateral, z = up, a proper
+      rotation (det +1).
+
+    Unlike PCN, which takes the yaw from the horizontal part of the length edge and
+    assumes the LiDAR z axis is up, the axes come from the corners in 3D, so the frame
+    is equivariant under any rigid motion of scene and box together. On KITTI boxes
+    (tilted by ~0.01 rad in the LiDAR frame) the two differ by that tilt.
+
+    Parameters
+    ----------
+    corners : (8, 3) float
+    pcn_axes : bool
+    tol : float
+        Relative tolerance (of the box length) for checking that the corners form a box.
+
+    Returns
+    -------
+    BoxNormalization
+        Also unpacks as ``rotation, center, scale``.
+    """
+    box = np.asarray(corners, dtype=np.float64)
+    if box.shape != (8, 3):
+        raise EscapeError(f"box corners must have shape (8, 3), got {box.shape}")
+    if not np.all(np.isfinite(box)):
+        raise EscapeError("box corners contain NaN or infinite values")
+    length_edge = box[3] - box[0]  # (3,)
+    width_edge = box[1] - box[0]  # (3,)
+    up_edge = box[4] - box[0]  # (3,)
+    length = float(np.linalg.norm(length_edge))
+    if length == 0.0:
+        raise DegenerateGeometryError("box has zero length (corners 0 and 3 coincide)")
+    # Parallelepiped in PCN order: bottom 0,1,2,3 round the face, top = bottom + up.
+    expected = np.stack([
+        box[0], box[0] + width_edge, box[0] + width_edge + length_edge, box[0] + length_edge,
+    ])  # (4, 3)
+    expected = np.concatenate([expected, expected + up_edge])  # (8, 3)
+    misfit = float(np.abs(box - expected).max())
+    u = length_edge / length
+    up_perp = up_edge - (up_edge @ u) * u
+    height = float(np.linalg.norm(up_perp))
+    width = float(np.linalg.norm(width_edge))
+    if height <= tol * length or width <= tol * length:
+        raise DegenerateGeometryError(
+            "box is flat: its up or width edge is (nearly) zero or along its length"
+        )
+    w = up_perp / height
+    cosines = [abs(float(u @ width_edge)) / width, abs(float(w @ width_edge)) / width,
+               abs(float(u @ up_edge)) / np.linalg.norm(up_edge)]
+    if misfit > tol * length or max(cosines) > tol:
+        raise DegenerateGeometryError(
+            "corners are not a box in PCN order (bbox[3]-bbox[0] = length, bbox[4]-bbox[0] = up)"
+        )
+    lateral = np.cross(w, u)  # (3,) unit: w x u
+    rotation = np.stack((u, w, lateral) if pcn_axes else (u, lateral, w))  # (3, 3) rows = axes
+    return BoxNormalization(rotation, box.mean(axis=0), length)

@@ -1,0 +1,115 @@
+"""`escape complete` through the CLI: formats, stdin/stdout, batches, bad files, overwrite."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cli_runner import run_escape
+from escape_cli.io import read_point_fields, read_points, write_points
+from tests_support import partial_cloud
+
+
+@pytest.fixture
+def scan(tmp_path, rng):
+    path = tmp_path / "scan.ply"
+    write_points(path, partial_cloud(rng, 700))
+    return path
+
+
+@pytest.mark.parametrize("in_fmt", ["ply", "pcd", "xyz", "npy"])
+@pytest.mark.parametrize("out_fmt", ["ply", "pcd", "xyz", "npy"])
+def test_round_trips_every_format(tmp_path, rng, tiny_model, in_fmt, out_fmt):
+    cloud = partial_cloud(rng, 500)
+    src = tmp_path / f"in.{in_fmt}"
+    write_points(src, cloud)
+    dst = tmp_path / f"out.{out_fmt}"
+    res = run_escape("complete", src, "-o", dst, "--model", tiny_model, "--points", "1000")
+    assert res.exit_code == 0, res.stderr
+    out = read_points(dst)
+    assert out.shape == (1000, 3)
+    summary = json.loads(res.stderr_lines[-1])
+    assert summary["points"] == 1000 and summary["input_points"] == 500
+
+
+def test_stdin_to_stdout(scan, tiny_model):
+    res = run_escape("complete", "-", "-o", "-", "--model", tiny_model, "--points", "512", stdin=scan.read_bytes())
+    assert res.exit_code == 0, res.stderr
+    assert res.stdout.startswith(b"ply")
+    res_pcd = run_escape("complete", "-", "-o", "-", "--format", "pcd", "--model", tiny_model, stdin=scan.read_bytes())
+    assert res_pcd.exit_code == 0 and b"FIELDS x y z" in res_pcd.stdout
+
+
+def test_residuals_and_anchors_out(scan, tmp_path, tiny_model):
+    out, anchors = tmp_path / "out.ply", tmp_path / "anchors.ply"
+    res = run_escape("complete", scan, "-o", out, "--model", tiny_model, "--residuals", "--anchors-out", anchors)
+    assert res.exit_code == 0, res.stderr
+    points, fields = read_point_fields(out)
+    assert "residual" in fields and "observed" in fields
+    assert np.all(fields["residual"] >= 0) and set(np.unique(fields["observed"])) <= {0.0, 1.0}
+    assert read_points(anchors).shape == (8, 3)
+
+
+def test_batch_with_a_corrupt_file_completes_the_others(tmp_path, rng, tiny_model):
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for name in ("a.ply", "b.pcd", "c.xyz"):
+        write_points(folder / name, partial_cloud(rng, 400))
+    (folder / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    res = run_escape("complete", folder, "-o", tmp_path / "out", "--model", tiny_model, "--points", "600")
+    assert res.exit_code != 0
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.ply", "b.ply", "c.ply"]
+    errors = [line for line in res.stderr_lines if line.startswith("escape: error:")]
+    assert any("broken.ply" in line for line in errors)
+    assert "Traceback" not in res.stderr
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before, "inputs must never change"
+
+
+def test_glob_and_workers(tmp_path, rng, tiny_model):
+    for name in ("x.ply", "y.ply"):
+        write_points(tmp_path / name, partial_cloud(rng, 300))
+    res = run_escape("complete", str(tmp_path / "*.ply"), "-o", tmp_path / "out", "--model", tiny_model,
+                     "--workers", "2", "--json", "--points", "400")
+    assert res.exit_code == 0, res.stderr
+    lines = [json.loads(line) for line in res.stdout.decode().splitlines()]
+    assert sorted(line["input"].split("/")[-1] for line in lines) == ["x.ply", "y.ply"]
+
+
+def test_refuses_to_overwrite(scan, tmp_path, tiny_model):
+    out = tmp_path / "out.ply"
+    out.write_bytes(b"keep me")
+    res = run_escape("complete", scan, "-o", out, "--model", tiny_model)
+    assert res.exit_code != 0 and "--overwrite" in res.stderr
+    assert out.read_bytes() == b"keep me"
+    assert run_escape("complete", scan, "-o", out, "--model", tiny_model, "--overwrite").exit_code == 0
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"", "empty"),
+        (b"0 0 0\n1 1 1\n2 2 2\n", "distinct points"),
+        (b"nan nan nan\ninf 0 0\n", "non-finite"),
+    ],
+)
+def test_bad_clouds_give_one_line(tmp_path, tiny_model, content, message):
+    src = tmp_path / "bad.xyz"
+    src.write_bytes(content)
+    res = run_escape("complete", src, "-o", tmp_path / "out.ply", "--model", tiny_model)
+    assert res.exit_code != 0
+    assert len(res.stderr_lines) == 1 and res.stderr_lines[0].startswith("escape: error:"), res.stderr
+    assert message in res.stderr
+    assert not (tmp_path / "out.ply").exists()
+
+
+def test_corrupt_or_missing_model(scan, tmp_path, tiny_model):
+    res = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", tmp_path / "none.onnx")
+    assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "does not exist" in res.stderr
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"garbage")
+    (tmp_path / "bad.json").write_text(json.dumps({"k": 8, "input_points": 256, "output_points": 256}))
+    res = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", bad)
+    assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "model" in res.stderr

@@ -1,0 +1,46 @@
+"""The shipped model in models/: metadata, size, and completion of every real scan."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import REPO, realdata_clouds
+
+MODEL = REPO / "models" / "escape-small.onnx"
+
+pytestmark = pytest.mark.skipif(not MODEL.exists(), reason=f"no shipped model at {MODEL}")
+
+
+def test_model_card_and_metadata():
+    meta = json.loads(MODEL.with_suffix(".json").read_text())
+    assert MODEL.stat().st_size < 50e6
+    assert meta["k"] == 8 and meta["input_points"] == 2048
+    assert meta["normalization"]["target_radius"] > 0
+    assert meta["training"]["train_objects"] > 0 and meta["validation"]
+    assert (REPO / "models" / "README.md").exists()
+
+
+def test_shipped_model_is_the_default():
+    from escape_cli.inference import default_model_path
+
+    assert default_model_path().resolve() == MODEL.resolve()
+
+
+@pytest.mark.parametrize("path", realdata_clouds(), ids=lambda p: p.name)
+def test_completes_every_real_scan(path, realdata_dir, tmp_path):
+    from cli_runner import run_escape
+    from escape_cli.io import read_points
+
+    out = tmp_path / "out.ply"
+    res = run_escape("complete", path, "-o", out, "--residuals")
+    assert res.exit_code == 0, res.stderr
+    points = read_points(out)
+    assert points.shape == (16384, 3) and np.all(np.isfinite(points))
+    cloud = read_points(path)
+    # the output stays in the input's frame and units: same place, comparable size
+    extent = np.ptp(cloud, axis=0).max()
+    assert np.linalg.norm(points.mean(axis=0) - cloud.mean(axis=0)) < 2 * extent
+    assert np.ptp(points, axis=0).max() < 5 * extent
