@@ -109,7 +109,6 @@ def evaluate_pcn(
     from (`seed`, sample index), so any subset gives the same numbers.
     """
     from escape_cli.data.pcn import list_samples, read_sample
-    from escape_cli.rotations import paper_rotation
 
     refs = list_samples(root, split, categories=categories, views="first")
     if limit is not None:
@@ -121,24 +120,72 @@ def evaluate_pcn(
         sample = read_sample(ref, n_points=None)
         rng = np.random.default_rng((seed, i))
         partial = perturbation.apply(sample.partial.astype(np.float64), rng)
-        truth = sample.complete.astype(np.float64)
-        poses = {"": np.eye(3)}
-        if rotate:
-            poses["rotated/"] = paper_rotation(rng)
-        metrics: dict[str, float] = {}
-        for prefix, rotation in poses.items():
-            for name, completer in completers.items():
-                output = completer(partial @ rotation.T)
-                for key, value in pcn_metrics(output, truth @ rotation.T).items():
-                    metrics[f"{prefix}{name}/{key}"] = value
-                if save_dir is not None:
-                    _save(save_dir, ref, f"{name}{'_rotated' if prefix else ''}", output)
+        saver = None if save_dir is None else (lambda tag, pts, ref=ref: _save(save_dir, ref.synset, f"{ref.model_id}_{ref.view:02d}_{tag}", pts))
+        metrics = _score_sample(partial, sample.complete.astype(np.float64), completers, rotate, rng, saver)
         result.records.append(
             {"synset": sample.synset, "category": sample.category, "model_id": sample.model_id, "view": sample.view,
              "input_points": int(len(partial)), "metrics": metrics}
         )
         if progress:
             progress(i + 1, len(refs))
+    return result
+
+
+def _score_sample(partial, truth, completers, rotate: bool, rng, saver=None) -> dict[str, float]:
+    """Metrics of every completer on one (partial, truth) pair, canonical and optionally rotated."""
+    from escape_cli.rotations import paper_rotation
+
+    poses = {"": np.eye(3)}
+    if rotate:
+        poses["rotated/"] = paper_rotation(rng)
+    metrics: dict[str, float] = {}
+    for prefix, rotation in poses.items():
+        for name, completer in completers.items():
+            output = completer(partial @ rotation.T)
+            for key, value in pcn_metrics(output, truth @ rotation.T).items():
+                metrics[f"{prefix}{name}/{key}"] = value
+            if saver is not None:
+                saver(f"{name}{'_rotated' if prefix else ''}", output)
+    return metrics
+
+
+def evaluate_pairs(
+    root: Path,
+    completers: dict[str, Completer],
+    *,
+    rotate: bool = False,
+    seed: int = 0,
+    perturbation: Perturbation = Perturbation(),
+    save_dir: Path | None = None,
+) -> PCNEvaluation:
+    """Evaluate partial views of one object with known ground truth.
+
+    `root` holds `complete.<ext>` (the truth) and any number of partial views (every
+    other cloud file), in the same frame, like realdata's p2c_chair. They are scored as
+    one category named after the folder.
+    """
+    from escape_cli.cli.inputs import CLOUD_SUFFIXES
+    from escape_cli.io import read_points
+
+    root = Path(root)
+    files = sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES)
+    truth_files = [p for p in files if p.stem == "complete"]
+    if len(truth_files) != 1:
+        raise DatasetError(f"{root} must hold exactly one complete.<ext> ground-truth cloud")
+    views = [p for p in files if p.stem != "complete"]
+    if not views:
+        raise DatasetError(f"{root} holds no partial views beside {truth_files[0].name}")
+    truth = read_points(truth_files[0])
+    result = PCNEvaluation(methods=list(completers), rotate=rotate)
+    for i, view in enumerate(views):
+        rng = np.random.default_rng((seed, i))
+        partial = perturbation.apply(read_points(view), rng)
+        saver = None if save_dir is None else (lambda tag, pts, v=view: _save(save_dir, root.name, f"{v.stem}_{tag}", pts))
+        metrics = _score_sample(partial, truth, completers, rotate, rng, saver)
+        result.records.append(
+            {"synset": root.name, "category": root.name, "model_id": view.stem, "view": i,
+             "input_points": int(len(partial)), "metrics": metrics}
+        )
     return result
 
 
@@ -152,10 +199,10 @@ def _limit_per_category(refs, limit: int):
     return out
 
 
-def _save(folder: Path, ref, tag: str, points: np.ndarray) -> None:
+def _save(folder: Path, group: str, name: str, points: np.ndarray) -> None:
     from escape_cli.io import write_points
 
-    path = Path(folder) / ref.synset / f"{ref.model_id}_{ref.view:02d}_{tag}.ply"
+    path = Path(folder) / group / f"{name}.ply"
     path.parent.mkdir(parents=True, exist_ok=True)
     write_points(path, points, overwrite=True)
 

@@ -11,7 +11,10 @@ import typer
 
 
 def command(
-    dataset: str = typer.Option("pcn", "--dataset", help="pcn (any PCN-layout tree, e.g. from `escape dataset synth`) or kitti."),
+    dataset: str = typer.Option(
+        "pcn", "--dataset",
+        help="pcn (a PCN-layout tree, e.g. from `escape dataset synth`), pair (a folder with complete.<ext> and partial views) or kitti.",
+    ),
     root: Path = typer.Option(..., "--root", help="Dataset folder."),
     split: str = typer.Option("test", "--split", help="PCN split: train, val or test."),
     categories: Optional[List[str]] = typer.Option(None, "--categories", "-c", help="Category names or synsets (repeatable)."),
@@ -32,12 +35,12 @@ def command(
     from rich.console import Console
 
     from escape_cli.cli.options import check_output
-    from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pcn
+    from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pairs, evaluate_pcn
     from escape_cli.inference import load_model
     from escape_cli.pipeline import complete
 
-    if dataset not in ("pcn", "kitti"):
-        raise typer.BadParameter("must be pcn or kitti", param_hint="--dataset")
+    if dataset not in ("pcn", "pair", "kitti"):
+        raise typer.BadParameter("must be pcn, pair or kitti", param_hint="--dataset")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     if json_path is not None:
@@ -63,6 +66,12 @@ def command(
                 perturbation=Perturbation(noise=noise, drop=drop), limit=limit, save_dir=save,
                 progress=lambda i, n: status.update(f"evaluating {i}/{n}"),
             )
+    elif dataset == "pair":
+        settings.update(noise=noise, drop=drop)
+        result = evaluate_pairs(
+            root, completers, rotate=rotate, seed=seed, perturbation=Perturbation(noise=noise, drop=drop), save_dir=save
+        )
+    if dataset in ("pcn", "pair"):
         summary = result.summary()
         _print_pcn_table(summary, list(completers), rotate)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}

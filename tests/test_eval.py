@@ -1,0 +1,96 @@
+"""`escape eval`: tables and JSON on a tiny PCN tree (checked by brute force), pairs, KITTI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cli_runner import run_escape
+from escape_cli.data.pcn import read_pcd
+from escape_cli.evaluation import Perturbation
+from escape_cli.io import read_points
+from escape_cli.metrics import chamfer_l1_naive, chamfer_l2_naive, fscore_naive
+from tests_support import write_tiny_pcn_tree
+
+
+@pytest.fixture(scope="module")
+def tiny_tree(tmp_path_factory):
+    root = tmp_path_factory.mktemp("pcn_eval")
+    write_tiny_pcn_tree(root, seed=3)
+    return root
+
+
+def test_pcn_table_and_json_match_brute_force(tiny_tree, tiny_model, tmp_path):
+    report_path, saved = tmp_path / "report.json", tmp_path / "saved"
+    res = run_escape("eval", "--dataset", "pcn", "--root", tiny_tree, "--model", tiny_model, "--rotate",
+                     "--json", report_path, "--save", saved)
+    assert res.exit_code == 0, res.stderr
+    table = res.stdout.decode()
+    for word in ("chair", "table", "average", "CD-L1", "rot gap"):
+        assert word in table
+    report = json.loads(report_path.read_text())
+    assert set(report["categories"]) == {"chair", "table"}
+    assert report["average"]["count"] == 4
+    for sample in report["samples"]:
+        truth = read_pcd(tiny_tree / "test" / "complete" / sample["synset"] / f"{sample['model_id']}.pcd")
+        out = read_points(saved / sample["synset"] / f"{sample['model_id']}_00_escape.ply")
+        m = sample["metrics"]
+        assert m["escape/cd_l1_x1000"] == pytest.approx(1000 * chamfer_l1_naive(out, truth), rel=1e-4)
+        assert m["escape/cd_l2_x1000"] == pytest.approx(1000 * chamfer_l2_naive(out, truth), rel=1e-3)
+        assert m["escape/fscore_1pct"] == pytest.approx(fscore_naive(out, truth, 0.01), abs=2e-3)
+        partial = read_pcd(tiny_tree / "test" / "partial" / sample["synset"] / sample["model_id"] / "00.pcd")
+        assert m["input/cd_l1_x1000"] == pytest.approx(1000 * chamfer_l1_naive(partial, truth), rel=1e-4)
+        # equivariant: the rotated score equals the canonical one
+        assert m["rotated/escape/cd_l1_x1000"] == pytest.approx(m["escape/cd_l1_x1000"], rel=1e-3)
+    chair = report["categories"]["chair"]
+    rows = [s for s in report["samples"] if s["category"] == "chair"]
+    assert chair["escape/cd_l1_x1000_mean"] == pytest.approx(np.mean([s["metrics"]["escape/cd_l1_x1000"] for s in rows]))
+    means = [c["escape/cd_l1_x1000_mean"] for c in report["categories"].values()]
+    assert report["average"]["escape/cd_l1_x1000_mean"] == pytest.approx(np.mean(means))
+
+
+def test_limit_noise_and_drop(tiny_tree, tiny_model, tmp_path):
+    res = run_escape("eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "--noise", "0.002",
+                     "--drop", "0.25", "--categories", "chair", "--json", tmp_path / "r.json", "--no-baseline")
+    assert res.exit_code == 0, res.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert list(report["categories"]) == ["chair"] and report["average"]["count"] == 1
+    assert report["samples"][0]["input_points"] < 600
+
+
+def test_perturbation_is_seeded():
+    pts = np.random.default_rng(0).random((1000, 3))
+    a = Perturbation(noise=0.01, drop=0.5).apply(pts, np.random.default_rng(1))
+    b = Perturbation(noise=0.01, drop=0.5).apply(pts, np.random.default_rng(1))
+    assert np.array_equal(a, b) and 400 < len(a) < 600
+
+
+def test_bad_dataset_root_is_one_line(tmp_path, tiny_model):
+    res = run_escape("eval", "--root", tmp_path, "--model", tiny_model)
+    assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "escape: error:" in res.stderr
+
+
+def test_pair_on_p2c_chair(realdata_dir, tiny_model):
+    res = run_escape("eval", "--dataset", "pair", "--root", realdata_dir / "p2c_chair", "--model", tiny_model, "--rotate")
+    assert res.exit_code == 0, res.stderr
+    assert "p2c_chair" in res.stdout.decode()
+
+
+def test_kitti_fidelity_and_mmd(realdata_dir, tiny_model, tmp_path):
+    refs = tmp_path / "refs"
+    refs.mkdir()
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-0.5, 0.5, size=(2000, 3)) * [1.0, 0.35, 0.45]
+    from escape_cli.io import write_points
+
+    write_points(refs / "box_car.ply", box)
+    res = run_escape("eval", "--dataset", "kitti", "--root", realdata_dir / "kitti_cars", "--model", tiny_model,
+                     "--reference", refs, "--json", tmp_path / "k.json")
+    assert res.exit_code == 0, res.stderr
+    report = json.loads((tmp_path / "k.json").read_text())
+    assert len(report["cars"]) == 6
+    for car in report["cars"]:
+        assert car["metrics"]["input/fidelity_x1000"] == pytest.approx(0.0, abs=1e-9)
+        assert car["metrics"]["escape/mmd_cd_l2_x1000"] > 0
