@@ -25,7 +25,7 @@ def command(
     views: Optional[int] = typer.Option(None, "--views", min=1, help="Use the first V partial views of each training object (default: all)."),
     workers: int = typer.Option(2, "--workers", help="Processes for preparing the data."),
     threads: int = typer.Option(0, "--threads", help="Torch threads (0: default)."),
-    max_steps: Optional[int] = typer.Option(None, "--max-steps", help="Stop after this many steps."),
+    max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
 ) -> None:
     """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn

@@ -106,9 +106,16 @@ class Trainer:
         return float(np.median([cloud_radius(data.inputs[i, : data.unique_counts[i]]) for i in rows]))
 
     # -- schedule and state -------------------------------------------------------------
+    @property
+    def total_steps(self) -> int:
+        """Steps of the whole run: `epochs` worth, or `max_steps` when that is sooner."""
+        total = self.opt.epochs * self.steps_per_epoch
+        return total if self.opt.max_steps is None else min(total, self.opt.max_steps)
+
     def lr_at(self, step: int) -> float:
+        """Linear warm-up, then cosine decay to `min_lr_ratio` at `total_steps`."""
         o = self.opt
-        total = max(o.epochs * self.steps_per_epoch, o.warmup_steps + 1)
+        total = max(self.total_steps, o.warmup_steps + 1)
         if step < o.warmup_steps:
             return o.lr * (step + 1) / o.warmup_steps
         progress = min(1.0, (step - o.warmup_steps) / max(1, total - o.warmup_steps))
@@ -229,9 +236,7 @@ class Trainer:
         o = self.opt
         last_metrics: dict = {}
         losses: list[float] = []
-        total_steps = o.epochs * self.steps_per_epoch
-        if o.max_steps is not None:
-            total_steps = min(total_steps, o.max_steps)
+        total_steps = self.total_steps
         while self.step < total_steps:
             self.epoch = self.step // self.steps_per_epoch
             pos = self.step % self.steps_per_epoch
