@@ -94,3 +94,13 @@ def test_kitti_fidelity_and_mmd(realdata_dir, tiny_model, tmp_path):
     for car in report["cars"]:
         assert car["metrics"]["input/fidelity_x1000"] == pytest.approx(0.0, abs=1e-9)
         assert car["metrics"]["escape/mmd_cd_l2_x1000"] > 0
+
+
+def test_json_report_is_not_overwritten_without_flag(tiny_tree, tiny_model, tmp_path):
+    report = tmp_path / "r.json"
+    report.write_text("keep")
+    args = ["eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair", "--json", report]
+    res = run_escape(*args)
+    assert res.exit_code != 0 and "--overwrite" in res.stderr and report.read_text() == "keep"
+    assert run_escape(*args, "--overwrite").exit_code == 0
+    assert json.loads(report.read_text())["average"]["count"] == 1

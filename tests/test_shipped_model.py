@@ -44,3 +44,18 @@ def test_completes_every_real_scan(path, realdata_dir, tmp_path):
     extent = np.ptp(cloud, axis=0).max()
     assert np.linalg.norm(points.mean(axis=0) - cloud.mean(axis=0)) < 2 * extent
     assert np.ptp(points, axis=0).max() < 5 * extent
+
+
+def test_shipped_model_is_equivariant_end_to_end():
+    from escape_cli import complete
+    from escape_cli.io import read_points
+    from escape_cli.metrics import chamfer_l1
+    from escape_cli.rotations import random_rotation
+
+    cloud = read_points(REPO / "examples" / "chair.pcd")
+    base = complete(cloud).points
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        r, t = random_rotation(rng), rng.normal(scale=2.0, size=3)
+        moved = complete((cloud @ r.T + t)[rng.permutation(len(cloud))]).points
+        assert chamfer_l1(moved, base @ r.T + t) < 1e-4

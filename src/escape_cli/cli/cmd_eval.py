@@ -9,6 +9,8 @@ from typing import List, Optional
 
 import typer
 
+from escape_cli.cli.options import OVERWRITE
+
 
 def command(
     dataset: str = typer.Option(
@@ -30,6 +32,7 @@ def command(
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
     json_path: Optional[Path] = typer.Option(None, "--json", help="Write every number to this JSON file."),
     save: Optional[Path] = typer.Option(None, "--save", help="Write every completion (PLY) under this folder."),
+    overwrite: bool = OVERWRITE,
 ) -> None:
     """Score completions: CD-L1 / CD-L2 x 1000 and F-Score@1% per category (PCN), or Fidelity and MMD (KITTI)."""
     from rich.console import Console
@@ -43,8 +46,11 @@ def command(
         raise typer.BadParameter("must be pcn, pair or kitti", param_hint="--dataset")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
-    if json_path is not None:
-        check_output(json_path, overwrite=True)
+    check_output(json_path, overwrite)
+    if save is not None and save.is_dir() and any(save.iterdir()) and not overwrite:
+        from escape_cli.errors import OutputExistsError
+
+        raise OutputExistsError(f"{save} is not empty (use --overwrite to write into it)")
     net = load_model(str(model) if model else None)
 
     def escape_completer(points):
@@ -83,7 +89,7 @@ def command(
     if json_path is not None:
         from escape_cli.io.files import write_output_bytes
 
-        write_output_bytes(json_path, (json.dumps(report, indent=1) + "\n").encode(), overwrite=True)
+        write_output_bytes(json_path, (json.dumps(report, indent=1) + "\n").encode(), overwrite=overwrite)
 
 
 def _read_references(folder: Path):

@@ -92,6 +92,9 @@ def export_onnx(checkpoint: Path, output: Path, overwrite: bool = False, opset: 
         if not diff <= PARITY_TOLERANCE:
             raise ModelError(f"onnxruntime differs from torch by {diff:.2e} (> {PARITY_TOLERANCE:g}); not exported")
         meta = _metadata(state, output.name, file_sha256(tmp), diff)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private
         tmp.replace(output)
     finally:
         tmp.unlink(missing_ok=True)
@@ -99,6 +102,19 @@ def export_onnx(checkpoint: Path, output: Path, overwrite: bool = False, opset: 
     tmp_meta.write_text(json.dumps(meta, indent=2) + "\n")
     tmp_meta.replace(meta_path)
     return meta
+
+
+def _dataset_summary(data_root: str | None) -> dict | None:
+    """Generator version, seed and counts of a dataset made by `escape dataset synth`, if it is one."""
+    if not data_root:
+        return None
+    path = Path(data_root) / "escape_synth.json"
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    keys = ("generator_version", "seed", "objects_per_category", "views_per_object", "totals")
+    return {key: info[key] for key in keys if key in info}
 
 
 def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
@@ -122,6 +138,8 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
         "parameters": state.get("parameters"),
         "training": {
             "data": options.get("data"),
+            "dataset": _dataset_summary(options.get("data")),
+            "views_per_object": options.get("views_per_object"),
             "seed": options.get("seed"),
             "train_samples": state.get("train_samples"),
             "train_objects": state.get("train_objects"),
