@@ -9,7 +9,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from escape_cli.errors import ModelError, OutputExistsError  # noqa: E402
+from escape_cli.errors import EscapeError, ModelError, OutputExistsError  # noqa: E402
 from escape_cli.inference import CompletionModel  # noqa: E402
 from escape_cli.nn.export import export_onnx, sample_input  # noqa: E402
 from tests_support import write_tiny_checkpoint  # noqa: E402
@@ -50,6 +50,6 @@ def test_corrupt_model_is_detected(tmp_path):
 
 def test_bad_checkpoint_is_a_clear_error(tmp_path):
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(Exception, match="cannot load checkpoint"):
+    with pytest.raises(EscapeError, match="cannot load checkpoint"):
         export_onnx(tmp_path / "bad.pt", tmp_path / "bad.onnx")
     assert not (tmp_path / "bad.onnx").exists()

@@ -8,8 +8,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
-
 import numpy as np
 
 from escape_cli.errors import PointCloudError
@@ -142,8 +140,3 @@ def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
     extra = rng.choice(count, size - count, replace=size - count > count)
     return np.concatenate([np.arange(count), extra])
 
-
-def model_path_or_default(path: Path | None) -> Path:
-    from escape_cli.inference import default_model_path
-
-    return Path(path) if path else default_model_path()

@@ -22,7 +22,7 @@ from typing import Sequence
 
 import numpy as np
 
-from escape_cli.errors import DatasetError, InputFileError, PointCloudError
+from escape_cli.errors import DatasetError, PointCloudError
 
 log = logging.getLogger("escape")
 

@@ -200,6 +200,8 @@ class Trainer:
         data = self.val_data
         dmcd = []
         xyz, baseline = [], []
+        # xyz subset spread over the split (it is sorted by category)
+        xyz_rows = set(np.linspace(0, len(data) - 1, min(self.opt.xyz_val_samples, len(data))).astype(int).tolist())
         for start in range(0, len(data), self.opt.batch):
             idx = np.arange(start, min(len(data), start + self.opt.batch))
             d_in, d_gt = self._batch(data, idx, rng, self.opt.gt_points, 0.0)
@@ -207,7 +209,7 @@ class Trainer:
             pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
             dmcd.append(chamfer_l1(pred, d_gt).item() * len(idx))
             for j, i in enumerate(idx):
-                if i >= self.opt.xyz_val_samples:
+                if i not in xyz_rows:
                     continue
                 anchors = data.anchors[i].astype(np.float64)
                 rec = reconstruct(fine[j].cpu().double().numpy(), anchors, reference_points=data.inputs[i]).points
