@@ -24,10 +24,13 @@ def realdata_dir() -> Path:
     return REALDATA
 
 
-def realdata_clouds() -> list[Path]:
-    """Every point-cloud file under ../shared/realdata (empty where it is absent)."""
+def realdata_clouds() -> list:
+    """Every point-cloud file under ../shared/realdata, for parametrize.
+
+    Where the folder is absent: one parameter that skips with a message saying so.
+    """
     if not REALDATA.is_dir():
-        return []
+        return [pytest.param(None, marks=pytest.mark.skip(reason=f"third-party scans not found at {REALDATA}"))]
     return sorted(p for p in REALDATA.rglob("*") if p.suffix.lower() in (".pcd", ".ply") and p.is_file())
 
 
@@ -42,3 +45,9 @@ def tiny_model(tmp_path_factory) -> Path:
     write_tiny_checkpoint(folder / "tiny.pt")
     export_onnx(folder / "tiny.pt", folder / "tiny.onnx")
     return folder / "tiny.onnx"
+
+
+def realdata_id(path) -> str:
+    """Test id of a realdata cloud: its folder and name."""
+    return "absent" if path is None else f"{path.parent.name}/{path.name}"
+

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import realdata_clouds
+from conftest import realdata_clouds, realdata_id
 from escape_cli.anchors import METHODS, select_anchors
 from escape_cli.curvature import surface_variation
 from escape_cli.encoding import distance_matrix
@@ -48,7 +48,7 @@ def test_anchors_equivariant_on_synthetic_clouds(name, method):
     assert_equivariant(synthetic_clouds()[name], np.random.default_rng(3), method)
 
 
-@pytest.mark.parametrize("path", realdata_clouds(), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", realdata_clouds(), ids=realdata_id)
 def test_anchors_equivariant_on_real_scans(path, realdata_dir):
     from escape_cli.io import read_points
 

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import realdata_clouds
+from conftest import realdata_clouds, realdata_id
 
 from escape_cli import io as cloud_io
 from escape_cli.errors import InputFileError, OutputExistsError, OutputFileError, PointCloudError
@@ -491,8 +491,8 @@ def test_reading_never_modifies_input(tmp_path, cloud):
 
 @pytest.mark.parametrize(
     "path",
-    realdata_clouds() or [pytest.param(None, marks=pytest.mark.skip(reason="../shared/realdata not found"))],
-    ids=lambda p: "none" if p is None else f"{p.parent.name}/{p.name}",
+    realdata_clouds(),
+    ids=realdata_id,
 )
 def test_realdata_matches_open3d(realdata_dir, path):
     open3d = pytest.importorskip("open3d")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import REPO, realdata_clouds
+from conftest import REPO, realdata_clouds, realdata_id
 
 MODEL = REPO / "models" / "escape-small.onnx"
 
@@ -29,7 +29,7 @@ def test_shipped_model_is_the_default():
     assert default_model_path().resolve() == MODEL.resolve()
 
 
-@pytest.mark.parametrize("path", realdata_clouds(), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", realdata_clouds(), ids=realdata_id)
 def test_completes_every_real_scan(path, realdata_dir, tmp_path):
     from cli_runner import run_escape
     from escape_cli.io import read_points
