@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import airfoil_section, box, ellipsoid, frustum, rotation_matrix
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("airliner", "propeller", "fighter")
 
@@ -153,13 +154,5 @@ def _fighter(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one airplane.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in fuselage lengths.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.45, 0.3, 0.25])
-    return (_airliner, _propeller, _fighter)[kind](rng)
+    """Draw one airplane: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_airliner, _propeller, _fighter), [0.45, 0.3, 0.25])

@@ -10,6 +10,7 @@ cabinet's doors) faces +x.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -83,3 +84,19 @@ def build_shape(synset: str, subtype: str, point_sets: list[np.ndarray]) -> Proc
     """Normalise the parts' vertices and turn each into a `ConvexPart`."""
     parts = tuple(ConvexPart.from_points(p) for p in normalise_to_unit_diagonal(point_sets))
     return ProceduralShape(synset, subtype, parts)
+
+
+ShapeBuilder = Callable[[np.random.Generator], tuple[str, list[np.ndarray]]]
+
+
+def draw_subtype(rng: np.random.Generator, builders: Sequence[ShapeBuilder], weights: Sequence[float]):
+    """Pick one sub-type builder with the given probabilities and run it.
+
+    Returns
+    -------
+    subtype : str
+    point_sets : list of (V_i, 3) float64
+        Vertices of each convex part.
+    """
+    return builders[rng.choice(len(builders), p=weights)](rng)
+

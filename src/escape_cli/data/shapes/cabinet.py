@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import beam, box, frustum
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("doors", "drawers", "shelves", "hutch")
 
@@ -123,13 +124,5 @@ def _hutch(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one cabinet.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in metres.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.35, 0.3, 0.2, 0.15])
-    return (_doors, _drawers, _shelves, _hutch)[kind](rng)
+    """Draw one cabinet: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_doors, _drawers, _shelves, _hutch), [0.35, 0.3, 0.2, 0.15])

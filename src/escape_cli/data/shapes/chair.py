@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import beam, box, ellipsoid, frustum, rotation_matrix
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("four_leg", "swivel", "lounge", "sled")
 
@@ -181,13 +182,5 @@ def _sled(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one chair.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in metres.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.5, 0.2, 0.15, 0.15])
-    return (_four_leg, _swivel, _lounge, _sled)[kind](rng)
+    """Draw one chair: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_four_leg, _swivel, _lounge, _sled), [0.5, 0.2, 0.15, 0.15])

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import box, ellipsoid, frustum, half_ellipsoid
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("floor", "desk", "table", "pendant")
 
@@ -109,13 +110,5 @@ def _pendant(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one lamp.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in metres.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.3, 0.25, 0.3, 0.15])
-    return (_floor, _desk, _table, _pendant)[kind](rng)
+    """Draw one lamp: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_floor, _desk, _table, _pendant), [0.3, 0.25, 0.3, 0.15])

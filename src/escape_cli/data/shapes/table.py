@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import beam, box, frustum
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("legs", "pedestal", "panel_ends", "desk")
 
@@ -138,13 +139,5 @@ def _desk(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one table.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in metres.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.45, 0.25, 0.15, 0.15])
-    return (_legs, _pedestal, _panel_ends, _desk)[kind](rng)
+    """Draw one table: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_legs, _pedestal, _panel_ends, _desk), [0.45, 0.25, 0.15, 0.15])

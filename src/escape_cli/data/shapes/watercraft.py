@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import beam, box, frustum, polygon_section
+from escape_cli.data.shapes.base import draw_subtype
 
 SUBTYPES = ("sailboat", "motorboat", "ship")
 
@@ -118,13 +119,5 @@ def _ship(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
 
 
 def generate(rng: np.random.Generator) -> tuple[str, list[np.ndarray]]:
-    """Draw one watercraft.
-
-    Returns
-    -------
-    subtype : str
-    point_sets : list of (V_i, 3) float64
-        Vertices of each convex part, in hull lengths.
-    """
-    kind = rng.choice(len(SUBTYPES), p=[0.35, 0.35, 0.3])
-    return (_sailboat, _motorboat, _ship)[kind](rng)
+    """Draw one watercraft: (subtype, vertices of each convex part); see `base.draw_subtype`."""
+    return draw_subtype(rng, (_sailboat, _motorboat, _ship), [0.35, 0.35, 0.3])
