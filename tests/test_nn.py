@@ -88,3 +88,25 @@ def test_a_few_steps_lower_the_loss(rng):
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
+
+
+def test_differentiable_reconstruction_is_the_lm_solution_with_its_implicit_gradient(rng):
+    from escape_cli.nn.loss import reconstruct_differentiable
+    from escape_cli.reconstruction import reconstruct
+
+    anchors = rng.normal(size=(8, 3))
+    points = 0.5 * rng.normal(size=(6, 3))
+    exact = np.linalg.norm(points[:, None] - anchors[None], axis=-1)  # (6, 8)
+    d = torch.tensor(exact[None], requires_grad=True)
+    out = reconstruct_differentiable(d, torch.tensor(anchors[None]), points[None], damping=0.0)  # (1, 6, 3)
+    np.testing.assert_allclose(out.detach().numpy()[0], points, atol=1e-8)
+    grad = torch.autograd.grad(out[0, 2, 1], d)[0].numpy()[0]  # (6, 8)
+    eps = 1e-6
+    numeric = np.zeros(8)
+    for k in range(8):
+        up, down = exact.copy(), exact.copy()
+        up[2, k] += eps
+        down[2, k] -= eps
+        numeric[k] = (reconstruct(up, anchors).points[2, 1] - reconstruct(down, anchors).points[2, 1]) / (2 * eps)
+    np.testing.assert_allclose(grad[2], numeric, atol=1e-5)
+    assert np.abs(np.delete(grad, 2, axis=0)).max() == 0.0  # points are solved independently

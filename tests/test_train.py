@@ -68,3 +68,24 @@ def test_train_and_export_through_the_cli(tiny_tree, tmp_path):
     meta = json.loads((tmp_path / "m.json").read_text())
     assert meta["training"]["train_objects"] == 4 and meta["normalization"]["target_radius"] > 0
     assert meta["validation"]["val_xyz_cd_l1_x1000"] > 0
+
+
+def test_init_starts_from_weights_with_a_fresh_schedule_and_xyz_loss(tiny_tree, tmp_path):
+    import torch
+
+    first = Trainer(options(tiny_tree, tmp_path / "a", max_steps=2))
+    first.run()
+    tuned = Trainer(options(tiny_tree, tmp_path / "b", max_steps=2, init=str(tmp_path / "a" / "last.pt"), xyz_weight=1.0))
+    assert tuned.step == 0
+    for name, value in first.model.state_dict().items():
+        assert torch.equal(value, tuned.model.state_dict()[name]), name
+    tuned.run()
+    assert tuned.step == 2 and (tmp_path / "b" / "best.pt").exists()
+
+
+def test_init_refuses_another_preset(tiny_tree, tmp_path):
+    from escape_cli.errors import EscapeError
+
+    Trainer(options(tiny_tree, tmp_path / "a", max_steps=1)).run()
+    with pytest.raises(EscapeError, match="network"):
+        Trainer(options(tiny_tree, tmp_path / "b", config="small", init=str(tmp_path / "a" / "last.pt")))

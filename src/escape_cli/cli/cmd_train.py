@@ -25,6 +25,8 @@ def command(
     views: Optional[int] = typer.Option(None, "--views", min=1, help="Use the first V partial views of each training object (default: all)."),
     workers: int = typer.Option(2, "--workers", help="Processes for preparing the data."),
     threads: int = typer.Option(0, "--threads", help="Torch threads (0: default)."),
+    xyz_weight: float = typer.Option(0.0, "--xyz-weight", min=0.0, help="Add Chamfer-L1 in xyz after reconstruction, with this weight."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint (new optimizer and schedule)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
 ) -> None:
     """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
@@ -40,7 +42,7 @@ def command(
         data=str(data), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
         device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
         categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
-        max_steps=max_steps,
+        max_steps=max_steps, xyz_weight=xyz_weight, init=str(init) if init else None,
     )
     trainer = Trainer(options, resume=resume)
     columns = [

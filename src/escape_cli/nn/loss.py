@@ -44,3 +44,34 @@ def chamfer_l1_naive(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     """Brute-force reference of `chamfer_l1` (O(P G) memory)."""
     d = torch.cdist(pred, gt)  # (B, P, G)
     return ((d.min(dim=2).values.mean(dim=1) + d.min(dim=1).values.mean(dim=1)) / 2).mean()
+
+
+def reconstruct_differentiable(pred: torch.Tensor, anchors: torch.Tensor, references: np.ndarray,
+                               damping: float = 1e-2) -> torch.Tensor:
+    """Coordinates of predicted distance vectors, with gradients, for an xyz-space loss.
+
+    The points are solved by the product's LM (`escape_cli.reconstruction.reconstruct`,
+    no gradient); one damped Gauss-Newton step taken from that solution in torch then
+    carries the gradient. Its value stays the LM solution (the step is ~0 at an optimum)
+    and its derivative is the implicit one, d x / d d = (J^T J + lambda I)^-1 J^T,
+    with lambda = `damping` * trace(J^T J) / 3 bounding it where anchors are flat.
+
+    pred : (B, P, K) distances, anchors : (B, K, 3), references : (B, N, 3) the partials
+    -> (B, P, 3)
+    """
+    from escape_cli.reconstruction import reconstruct
+
+    d = pred.detach().cpu().double().numpy()
+    a = anchors.detach().cpu().double().numpy()
+    solved = np.stack([reconstruct(d[i], a[i], reference_points=references[i]).points for i in range(len(d))])
+    x0 = torch.from_numpy(solved).to(pred)  # (B, P, 3)
+    diff = x0.unsqueeze(2) - anchors.detach().unsqueeze(1)  # (B, P, K, 3)
+    norm = diff.norm(dim=-1).clamp_min(1e-9)  # (B, P, K)
+    jac = diff / norm.unsqueeze(-1)  # (B, P, K, 3)
+    residual = norm - pred  # (B, P, K)
+    jtj = jac.transpose(-1, -2) @ jac  # (B, P, 3, 3)
+    lam = damping * jtj.diagonal(dim1=-2, dim2=-1).sum(-1) / 3  # (B, P)
+    eye = torch.eye(3, dtype=pred.dtype, device=pred.device)
+    jtr = (jac.transpose(-1, -2) @ residual.unsqueeze(-1))  # (B, P, 3, 1)
+    step = torch.linalg.solve(jtj + lam[..., None, None] * eye, jtr).squeeze(-1)  # (B, P, 3)
+    return x0 - step

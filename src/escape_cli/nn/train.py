@@ -15,7 +15,7 @@ import torch
 
 from escape_cli.errors import EscapeError
 from escape_cli.nn.config import ModelConfig, get_preset
-from escape_cli.nn.loss import chamfer_l1
+from escape_cli.nn.loss import chamfer_l1, reconstruct_differentiable
 from escape_cli.nn.model import EscapeNet, count_parameters
 from escape_cli.nn.samples import AnchorSettings, PreparedSplit, prepare_split
 
@@ -44,6 +44,7 @@ class TrainOptions:
     coarse_weight: float = 1.0
     include_observed: bool = True  # the input's own rows join the prediction in the loss
     denoise_sigma: float = 0.0  # Gaussian jitter on input points; the target stays clean
+    xyz_weight: float = 0.0  # weight of Chamfer-L1 in xyz after reconstruction (0: DMCD only)
     val_every: int = 0  # steps between validations (0: once per epoch)
     val_limit: int = 400
     xyz_val_samples: int = 24
@@ -52,6 +53,7 @@ class TrainOptions:
     threads: int = 0  # torch threads (0: torch's default)
     categories: tuple[str, ...] | None = None
     max_steps: int | None = None  # stop early (tests, smoke runs)
+    init: str | None = None  # start from this checkpoint's weights (fresh optimizer and schedule)
     anchors: AnchorSettings = field(default_factory=AnchorSettings)
 
 
@@ -95,6 +97,8 @@ class Trainer:
         self.input_radius = self._median_input_radius()
         if resume:
             self._load(self.out / "last.pt")
+        elif options.init:
+            self._init_weights(Path(options.init))
         (self.out / "options.json").write_text(json.dumps(asdict(options), indent=2, default=str))
 
     def _median_input_radius(self, count: int = 512) -> float:
@@ -156,6 +160,13 @@ class Trainer:
         self.elapsed, self.best = state["elapsed"], state["best"]
         log.info("resumed from %s at step %d (epoch %d)", path, self.step, self.epoch)
 
+    def _init_weights(self, path: Path) -> None:
+        model, state = load_checkpoint_model(path)
+        if ModelConfig.from_dict(state["config"]) != self.config:
+            raise EscapeError(f"--init {path} holds a {state['options'].get('config')!r} network, not {self.opt.config!r}")
+        self.model.load_state_dict(model.state_dict())
+        log.info("initialised from %s (step %d)", path, state["step"])
+
     # -- one batch ----------------------------------------------------------------------
     def _batch(self, data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float):
         pts = torch.from_numpy(data.inputs[idx]).to(self.device)  # (B, N, 3)
@@ -165,7 +176,7 @@ class Trainer:
         m = data.completes.shape[1]
         rows = np.stack([rng.choice(m, min(gt_points, m), replace=False) for _ in idx])  # (B, G)
         gt = torch.from_numpy(data.completes[data.object_index[idx][:, None], rows]).to(self.device)  # (B, G, 3)
-        return distances(pts, anc), distances(gt, anc)  # (B, N, K), (B, G, K)
+        return distances(pts, anc), distances(gt, anc), pts, anc, gt  # (B, N, K), (B, G, K), xyz of each
 
     def _loss(self, d_in, d_gt, fine, coarse):
         pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
@@ -173,14 +184,22 @@ class Trainer:
         coarse_loss = chamfer_l1(coarse, d_gt[:, : self.opt.coarse_gt_points])
         return fine_loss + self.opt.coarse_weight * coarse_loss, fine_loss
 
+    def _xyz_loss(self, fine, pts, anc, gt):
+        """Chamfer-L1 in xyz of the reconstructed fine output (+ observed points) against the truth."""
+        rec = reconstruct_differentiable(fine, anc, pts.detach().cpu().double().numpy())  # (B, P, 3)
+        pred = torch.cat([rec, pts], dim=1) if self.opt.include_observed else rec
+        return chamfer_l1(pred, gt)
+
     def train_step(self, idx: np.ndarray, rng: np.random.Generator) -> float:
         self.model.train()
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr_at(self.step)
-        d_in, d_gt = self._batch(self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma)
+        d_in, d_gt, pts, anc, gt = self._batch(self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma)
         seed_index = torch.from_numpy(np.sort(rng.choice(self.config.fold, min(self.opt.fold_subset, self.config.fold), replace=False)))
         fine, coarse = self.model(d_in, seed_index.to(self.device))
         loss, _ = self._loss(d_in, d_gt, fine, coarse)
+        if self.opt.xyz_weight > 0:
+            loss = loss + self.opt.xyz_weight * self._xyz_loss(fine, pts, anc, gt)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
@@ -204,7 +223,7 @@ class Trainer:
         xyz_rows = set(np.linspace(0, len(data) - 1, min(self.opt.xyz_val_samples, len(data))).astype(int).tolist())
         for start in range(0, len(data), self.opt.batch):
             idx = np.arange(start, min(len(data), start + self.opt.batch))
-            d_in, d_gt = self._batch(data, idx, rng, self.opt.gt_points, 0.0)
+            d_in, d_gt, *_ = self._batch(data, idx, rng, self.opt.gt_points, 0.0)
             fine, coarse = self.model(d_in)
             pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
             dmcd.append(chamfer_l1(pred, d_gt).item() * len(idx))
