@@ -81,6 +81,12 @@ def test_init_starts_from_weights_with_a_fresh_schedule_and_xyz_loss(tiny_tree, 
         assert torch.equal(value, tuned.model.state_dict()[name]), name
     tuned.run()
     assert tuned.step == 2 and (tmp_path / "b" / "best.pt").exists()
+    from escape_cli.nn.export import export_onnx
+
+    meta = export_onnx(tmp_path / "b" / "last.pt", tmp_path / "m.onnx")
+    assert meta["training"]["xyz_weight"] == 1.0
+    assert [run["steps"] for run in meta["training"]["initialised_from"]] == [2]
+    assert meta["training"]["total_steps"] == 4
 
 
 def test_init_refuses_another_preset(tiny_tree, tmp_path):

@@ -121,6 +121,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
     config = state["config"]
     options = state.get("options", {})
     queries = config["predicted_queries"] + config["input_queries"]
+    lineage = state.get("lineage", [])  # earlier runs this one was initialised from
     return {
         "format": MODEL_FORMAT,
         "onnx": onnx_name,
@@ -147,6 +148,11 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
             "epochs": round(state.get("step", 0) / max(1, state.get("steps_per_epoch", 1)), 3),
             "batch": options.get("batch"),
             "train_seconds": round(state.get("elapsed", 0.0), 1),
+            "lr": options.get("lr"),
+            "xyz_weight": options.get("xyz_weight", 0.0),
+            "initialised_from": lineage,
+            "total_steps": state.get("step", 0) + sum(run["steps"] for run in lineage),
+            "total_train_seconds": round(state.get("elapsed", 0.0) + sum(run["train_seconds"] for run in lineage), 1),
         },
         "validation": state.get("metrics", {}),
         "onnx_parity_max_abs": parity,

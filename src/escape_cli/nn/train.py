@@ -82,6 +82,7 @@ class Trainer:
         self.epoch = 0
         self.elapsed = 0.0
         self.best = math.inf
+        self.lineage: list[dict] = []  # runs this one was initialised from, oldest first
         cache = self.out / "cache"
         common = dict(
             input_points=self.config.input_points, settings=options.anchors, cache_dir=cache,
@@ -141,6 +142,7 @@ class Trainer:
             "train_objects": len(self.train_data.completes),
             "steps_per_epoch": self.steps_per_epoch,
             "input_radius": self.input_radius,
+            "lineage": self.lineage,
         }
 
     def _save(self, name: str, extra: dict | None = None) -> None:
@@ -158,6 +160,7 @@ class Trainer:
         self.optimizer.load_state_dict(state["optimizer"])
         self.step, self.epoch = state["step"], state["epoch"]
         self.elapsed, self.best = state["elapsed"], state["best"]
+        self.lineage = state.get("lineage", [])
         log.info("resumed from %s at step %d (epoch %d)", path, self.step, self.epoch)
 
     def _init_weights(self, path: Path) -> None:
@@ -165,6 +168,11 @@ class Trainer:
         if ModelConfig.from_dict(state["config"]) != self.config:
             raise EscapeError(f"--init {path} holds a {state['options'].get('config')!r} network, not {self.opt.config!r}")
         self.model.load_state_dict(model.state_dict())
+        options = state.get("options", {})
+        self.lineage = state.get("lineage", []) + [{
+            "checkpoint": str(path), "steps": state["step"], "train_seconds": round(state.get("elapsed", 0.0), 1),
+            "lr": options.get("lr"), "xyz_weight": options.get("xyz_weight", 0.0),
+        }]
         log.info("initialised from %s (step %d)", path, state["step"])
 
     # -- one batch ----------------------------------------------------------------------
