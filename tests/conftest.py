@@ -50,4 +50,3 @@ def tiny_model(tmp_path_factory) -> Path:
 def realdata_id(path) -> str:
     """Test id of a realdata cloud: its folder and name."""
     return "absent" if path is None else f"{path.parent.name}/{path.name}"
-

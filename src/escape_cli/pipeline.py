@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+
 import numpy as np
 
 from escape_cli.errors import PointCloudError
@@ -139,4 +140,3 @@ def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
         return np.sort(rng.choice(count, size, replace=False))
     extra = rng.choice(count, size - count, replace=size - count > count)
     return np.concatenate([np.arange(count), extra])
-

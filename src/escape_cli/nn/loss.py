@@ -72,6 +72,6 @@ def reconstruct_differentiable(pred: torch.Tensor, anchors: torch.Tensor, refere
     jtj = jac.transpose(-1, -2) @ jac  # (B, P, 3, 3)
     lam = damping * jtj.diagonal(dim1=-2, dim2=-1).sum(-1) / 3  # (B, P)
     eye = torch.eye(3, dtype=pred.dtype, device=pred.device)
-    jtr = (jac.transpose(-1, -2) @ residual.unsqueeze(-1))  # (B, P, 3, 1)
+    jtr = jac.transpose(-1, -2) @ residual.unsqueeze(-1)  # (B, P, 3, 1)
     step = torch.linalg.solve(jtj + lam[..., None, None] * eye, jtr).squeeze(-1)  # (B, P, 3)
     return x0 - step

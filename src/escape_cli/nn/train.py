@@ -165,10 +165,10 @@ class Trainer:
 
     def _init_weights(self, path: Path) -> None:
         model, state = load_checkpoint_model(path)
-        if ModelConfig.from_dict(state["config"]) != self.config:
-            raise EscapeError(f"--init {path} holds a {state['options'].get('config')!r} network, not {self.opt.config!r}")
-        self.model.load_state_dict(model.state_dict())
         options = state.get("options", {})
+        if model.config != self.config:
+            raise EscapeError(f"--init {path} holds a {options.get('config')!r} network, not {self.opt.config!r}")
+        self.model.load_state_dict(model.state_dict())
         self.lineage = state.get("lineage", []) + [{
             "checkpoint": str(path), "steps": state["step"], "train_seconds": round(state.get("elapsed", 0.0), 1),
             "lr": options.get("lr"), "xyz_weight": options.get("xyz_weight", 0.0),

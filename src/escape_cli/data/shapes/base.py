@@ -99,4 +99,3 @@ def draw_subtype(rng: np.random.Generator, builders: Sequence[ShapeBuilder], wei
         Vertices of each convex part.
     """
     return builders[rng.choice(len(builders), p=weights)](rng)
-
