@@ -28,6 +28,7 @@ def command(
     xyz_weight: float = typer.Option(0.0, "--xyz-weight", min=0.0, help="Add Chamfer-L1 in xyz after reconstruction, with this weight."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint (new optimizer and schedule)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
+    snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
 ) -> None:
     """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -42,7 +43,7 @@ def command(
         data=str(data), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
         device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
         categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
-        max_steps=max_steps, xyz_weight=xyz_weight, init=str(init) if init else None,
+        max_steps=max_steps, xyz_weight=xyz_weight, snapshot_every=snapshot_every, init=str(init) if init else None,
     )
     trainer = Trainer(options, resume=resume)
     columns = [

@@ -15,6 +15,7 @@ import typer
 from escape_cli import __version__
 from escape_cli.cli import (
     cmd_anchors,
+    cmd_average_checkpoints,
     cmd_complete,
     cmd_dataset,
     cmd_decode,
@@ -64,6 +65,7 @@ app.command("complete")(cmd_complete.command)
 app.command("eval")(cmd_eval.command)
 app.command("export-onnx")(cmd_export_onnx.command)
 app.command("train")(cmd_train.command)
+app.command("average-checkpoints")(cmd_average_checkpoints.command)
 app.command("render")(cmd_render.command)
 app.add_typer(cmd_dataset.app, name="dataset")
 

@@ -151,6 +151,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
             "lr": options.get("lr"),
             "xyz_weight": options.get("xyz_weight", 0.0),
             "initialised_from": lineage,
+            "averaged_from": state.get("averaged_from", []),
             "total_steps": state.get("step", 0) + sum(run["steps"] for run in lineage),
             "total_train_seconds": round(state.get("elapsed", 0.0) + sum(run["train_seconds"] for run in lineage), 1),
         },

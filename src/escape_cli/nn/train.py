@@ -49,6 +49,7 @@ class TrainOptions:
     val_limit: int = 400
     xyz_val_samples: int = 24
     checkpoint_every: int = 200
+    snapshot_every: int = 0  # keep the weights every N steps in OUT/snapshots (0: never), for `escape average-checkpoints`
     workers: int = 2
     threads: int = 0  # torch threads (0: torch's default)
     categories: tuple[str, ...] | None = None
@@ -60,6 +61,18 @@ class TrainOptions:
 def distances(points: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
     """points : (B, N, 3), anchors : (B, K, 3) -> (B, N, K)."""
     return torch.cdist(points, anchors)
+
+
+def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device):
+    """Rows `idx` of a split: (B, N, K) input and (B, G, K) truth distances, then the xyz of input, anchors, truth."""
+    pts = torch.from_numpy(data.inputs[idx]).to(device)  # (B, N, 3)
+    anc = torch.from_numpy(data.anchors[idx]).to(device)  # (B, K, 3)
+    if noise > 0:
+        pts = pts + noise * torch.from_numpy(rng.standard_normal(pts.shape).astype(np.float32)).to(device)
+    m = data.completes.shape[1]
+    rows = np.stack([rng.choice(m, min(gt_points, m), replace=False) for _ in idx])  # (B, G)
+    gt = torch.from_numpy(data.completes[data.object_index[idx][:, None], rows]).to(device)  # (B, G, 3)
+    return distances(pts, anc), distances(gt, anc), pts, anc, gt
 
 
 class Trainer:
@@ -176,16 +189,6 @@ class Trainer:
         log.info("initialised from %s (step %d)", path, state["step"])
 
     # -- one batch ----------------------------------------------------------------------
-    def _batch(self, data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float):
-        pts = torch.from_numpy(data.inputs[idx]).to(self.device)  # (B, N, 3)
-        anc = torch.from_numpy(data.anchors[idx]).to(self.device)  # (B, K, 3)
-        if noise > 0:
-            pts = pts + noise * torch.from_numpy(rng.standard_normal(pts.shape).astype(np.float32)).to(self.device)
-        m = data.completes.shape[1]
-        rows = np.stack([rng.choice(m, min(gt_points, m), replace=False) for _ in idx])  # (B, G)
-        gt = torch.from_numpy(data.completes[data.object_index[idx][:, None], rows]).to(self.device)  # (B, G, 3)
-        return distances(pts, anc), distances(gt, anc), pts, anc, gt  # (B, N, K), (B, G, K), xyz of each
-
     def _loss(self, d_in, d_gt, fine, coarse):
         pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
         fine_loss = chamfer_l1(pred, d_gt)
@@ -202,7 +205,9 @@ class Trainer:
         self.model.train()
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr_at(self.step)
-        d_in, d_gt, pts, anc, gt = self._batch(self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma)
+        d_in, d_gt, pts, anc, gt = sample_batch(
+            self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma, self.device
+        )
         seed_index = torch.from_numpy(np.sort(rng.choice(self.config.fold, min(self.opt.fold_subset, self.config.fold), replace=False)))
         fine, coarse = self.model(d_in, seed_index.to(self.device))
         loss, _ = self._loss(d_in, d_gt, fine, coarse)
@@ -216,40 +221,9 @@ class Trainer:
         return float(loss.item())
 
     # -- validation ---------------------------------------------------------------------
-    @torch.no_grad()
     def validate(self) -> dict:
         """Distance-space CD-L1 on the val split and xyz CD-L1 after reconstruction on a subset."""
-        from escape_cli.metrics import chamfer_l1 as xyz_chamfer_l1
-        from escape_cli.reconstruction import reconstruct
-
-        self.model.eval()
-        rng = np.random.default_rng(12345)  # the same ground-truth subsets every time
-        data = self.val_data
-        dmcd = []
-        xyz, baseline = [], []
-        # xyz subset spread over the split (it is sorted by category)
-        xyz_rows = set(np.linspace(0, len(data) - 1, min(self.opt.xyz_val_samples, len(data))).astype(int).tolist())
-        for start in range(0, len(data), self.opt.batch):
-            idx = np.arange(start, min(len(data), start + self.opt.batch))
-            d_in, d_gt, *_ = self._batch(data, idx, rng, self.opt.gt_points, 0.0)
-            fine, coarse = self.model(d_in)
-            pred = torch.cat([fine, d_in], dim=1) if self.opt.include_observed else fine
-            dmcd.append(chamfer_l1(pred, d_gt).item() * len(idx))
-            for j, i in enumerate(idx):
-                if i not in xyz_rows:
-                    continue
-                anchors = data.anchors[i].astype(np.float64)
-                rec = reconstruct(fine[j].cpu().double().numpy(), anchors, reference_points=data.inputs[i]).points
-                observed = data.inputs[i].astype(np.float64)
-                out = np.concatenate([rec, observed]) if self.opt.include_observed else rec
-                truth = data.completes[data.object_index[i]].astype(np.float64)
-                xyz.append(xyz_chamfer_l1(out, truth))
-                baseline.append(xyz_chamfer_l1(observed, truth))
-        return {
-            "val_dmcd_x1000": 1000 * sum(dmcd) / len(data),
-            "val_xyz_cd_l1_x1000": 1000 * float(np.mean(xyz)) if xyz else float("nan"),
-            "val_input_cd_l1_x1000": 1000 * float(np.mean(baseline)) if baseline else float("nan"),
-        }
+        return validate(self.model, self.val_data, self.opt, self.device)
 
     def _log_curve(self, row: dict) -> None:
         path = self.out / "curve.csv"
@@ -295,7 +269,57 @@ class Trainer:
                 self._save("last.pt", {"metrics": row})
             elif self.step % o.checkpoint_every == 0:
                 self._save("last.pt")
+            if o.snapshot_every and self.step % o.snapshot_every == 0:
+                self._save_snapshot()
         return last_metrics
+
+    def _save_snapshot(self) -> None:
+        """Weights and metadata of this step (no optimizer state) as OUT/snapshots/step<N>.pt."""
+        state = {key: value for key, value in self._state().items() if key != "optimizer"}
+        folder = self.out / "snapshots"
+        folder.mkdir(exist_ok=True)
+        name = f"step{self.step:07d}.pt"
+        tmp = folder / f".{name}.tmp"
+        torch.save(state, tmp)
+        tmp.replace(folder / name)
+
+
+@torch.no_grad()
+def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: torch.device) -> dict:
+    """Distance-space CD-L1 on a prepared split and xyz CD-L1 after reconstruction on a spread subset.
+
+    The same ground-truth subsets every call (fixed seed), so numbers compare across steps and runs.
+    """
+    from escape_cli.metrics import chamfer_l1 as xyz_chamfer_l1
+    from escape_cli.reconstruction import reconstruct
+
+    model.eval()
+    rng = np.random.default_rng(12345)
+    dmcd = []
+    xyz, baseline = [], []
+    # xyz subset spread over the split (it is sorted by category)
+    xyz_rows = set(np.linspace(0, len(data) - 1, min(opt.xyz_val_samples, len(data))).astype(int).tolist())
+    for start in range(0, len(data), opt.batch):
+        idx = np.arange(start, min(len(data), start + opt.batch))
+        d_in, d_gt, *_ = sample_batch(data, idx, rng, opt.gt_points, 0.0, device)
+        fine, coarse = model(d_in)
+        pred = torch.cat([fine, d_in], dim=1) if opt.include_observed else fine
+        dmcd.append(chamfer_l1(pred, d_gt).item() * len(idx))
+        for j, i in enumerate(idx):
+            if i not in xyz_rows:
+                continue
+            anchors = data.anchors[i].astype(np.float64)
+            rec = reconstruct(fine[j].cpu().double().numpy(), anchors, reference_points=data.inputs[i]).points
+            observed = data.inputs[i].astype(np.float64)
+            out = np.concatenate([rec, observed]) if opt.include_observed else rec
+            truth = data.completes[data.object_index[i]].astype(np.float64)
+            xyz.append(xyz_chamfer_l1(out, truth))
+            baseline.append(xyz_chamfer_l1(observed, truth))
+    return {
+        "val_dmcd_x1000": 1000 * sum(dmcd) / len(data),
+        "val_xyz_cd_l1_x1000": 1000 * float(np.mean(xyz)) if xyz else float("nan"),
+        "val_input_cd_l1_x1000": 1000 * float(np.mean(baseline)) if baseline else float("nan"),
+    }
 
 
 def load_checkpoint_model(path: Path) -> tuple[EscapeNet, dict]:
