@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from escape_cli.errors import EscapeError, OutputExistsError
-from escape_cli.nn.train import load_checkpoint_model
+from escape_cli.nn.train import load_checkpoint_model, save_checkpoint
 
 log = logging.getLogger("escape")
 
@@ -65,29 +65,18 @@ def average_checkpoints(paths: list[Path], output: Path, overwrite: bool = False
         if metrics:
             state["metrics"] = {"step": state.get("step"), **metrics}
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f".{output.name}.tmp")
-    torch.save(state, tmp)
-    tmp.replace(output)
+    save_checkpoint(state, output)
     return state
 
 
 def _validate(model, state: dict) -> dict | None:
     """The run's own validation of `model`, or None when its dataset is gone."""
-    from escape_cli.nn.samples import AnchorSettings, prepare_split
-    from escape_cli.nn.train import TrainOptions, validate
+    from escape_cli.nn.train import TrainOptions, validate, validation_split
 
-    raw = dict(state.get("options", {}))
-    data = raw.get("data")
-    if not data or not (Path(data) / "val").is_dir():
-        log.warning("not validated: the run's dataset %s is not there", data)
+    raw = state.get("options", {})
+    if not raw.get("data") or not (Path(raw["data"]) / "val").is_dir():
+        log.warning("not validated: the run's dataset %s is not there", raw.get("data"))
         return None
-    raw["anchors"] = AnchorSettings(**raw.get("anchors", {}))
-    if raw.get("categories"):
-        raw["categories"] = tuple(raw["categories"])
-    known = set(TrainOptions.__dataclass_fields__)
-    options = TrainOptions(**{key: value for key, value in raw.items() if key in known})
-    split = prepare_split(
-        Path(data), "val", model.config.input_points, options.anchors, Path(options.out) / "cache",
-        views="first", limit=options.val_limit, categories=options.categories, workers=options.workers,
-    )
+    options = TrainOptions.from_dict(raw)
+    split = validation_split(options, model.config.input_points)
     return validate(model, split, options, torch.device("cpu"))

@@ -57,10 +57,34 @@ class TrainOptions:
     init: str | None = None  # start from this checkpoint's weights (fresh optimizer and schedule)
     anchors: AnchorSettings = field(default_factory=AnchorSettings)
 
+    @classmethod
+    def from_dict(cls, raw: dict) -> "TrainOptions":
+        """The options saved in a checkpoint (`asdict` form) back as a `TrainOptions`."""
+        values = {key: value for key, value in raw.items() if key in cls.__dataclass_fields__}
+        values["anchors"] = AnchorSettings(**values.get("anchors", {}))
+        if values.get("categories"):
+            values["categories"] = tuple(values["categories"])
+        return cls(**values)
+
 
 def distances(points: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
     """points : (B, N, 3), anchors : (B, K, 3) -> (B, N, K)."""
     return torch.cdist(points, anchors)
+
+
+def validation_split(options: TrainOptions, input_points: int) -> PreparedSplit:
+    """The run's validation samples: the first view of each val object, `val_limit` of them."""
+    return prepare_split(
+        Path(options.data), "val", input_points, options.anchors, Path(options.out) / "cache",
+        categories=options.categories, views="first", limit=options.val_limit, workers=options.workers,
+    )
+
+
+def save_checkpoint(state: dict, path: Path) -> None:
+    """torch.save to a hidden temporary beside PATH, then rename: a reader never sees half a file."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
 
 
 def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device):
@@ -96,17 +120,11 @@ class Trainer:
         self.elapsed = 0.0
         self.best = math.inf
         self.lineage: list[dict] = []  # runs this one was initialised from, oldest first
-        cache = self.out / "cache"
-        common = dict(
-            input_points=self.config.input_points, settings=options.anchors, cache_dir=cache,
-            categories=options.categories, workers=options.workers,
-        )
         self.train_data: PreparedSplit = prepare_split(
-            Path(options.data), "train", max_views=options.views_per_object, **common
+            Path(options.data), "train", self.config.input_points, options.anchors, self.out / "cache",
+            categories=options.categories, max_views=options.views_per_object, workers=options.workers,
         )
-        self.val_data: PreparedSplit = prepare_split(
-            Path(options.data), "val", views="first", limit=options.val_limit, **common
-        )
+        self.val_data: PreparedSplit = validation_split(options, self.config.input_points)
         self.steps_per_epoch = max(1, len(self.train_data) // options.batch)
         self.input_radius = self._median_input_radius()
         if resume:
@@ -161,9 +179,7 @@ class Trainer:
     def _save(self, name: str, extra: dict | None = None) -> None:
         state = self._state()
         state.update(extra or {})
-        tmp = self.out / f".{name}.tmp"
-        torch.save(state, tmp)
-        tmp.replace(self.out / name)
+        save_checkpoint(state, self.out / name)
 
     def _load(self, path: Path) -> None:
         if not path.exists():
@@ -278,10 +294,7 @@ class Trainer:
         state = {key: value for key, value in self._state().items() if key != "optimizer"}
         folder = self.out / "snapshots"
         folder.mkdir(exist_ok=True)
-        name = f"step{self.step:07d}.pt"
-        tmp = folder / f".{name}.tmp"
-        torch.save(state, tmp)
-        tmp.replace(folder / name)
+        save_checkpoint(state, folder / f"step{self.step:07d}.pt")
 
 
 @torch.no_grad()
