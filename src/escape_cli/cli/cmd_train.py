@@ -26,7 +26,7 @@ def command(
     workers: int = typer.Option(2, "--workers", help="Processes for preparing the data."),
     threads: int = typer.Option(0, "--threads", help="Torch threads (0: default)."),
     xyz_weight: float = typer.Option(0.0, "--xyz-weight", min=0.0, help="Add Chamfer-L1 in xyz after reconstruction, with this weight."),
-    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint (new optimizer and schedule)."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint or exported .onnx model (new optimizer and schedule)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
 ) -> None:

@@ -336,7 +336,15 @@ def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: t
 
 
 def load_checkpoint_model(path: Path) -> tuple[EscapeNet, dict]:
-    """Rebuild the network of a checkpoint in eval mode; returns (model, checkpoint dict)."""
+    """Rebuild the network of a checkpoint in eval mode; returns (model, checkpoint dict).
+
+    An exported `.onnx` (with its metadata beside it) works too: its weights are recovered
+    from the graph, so a shipped model can be fine-tuned with `escape train --init`.
+    """
+    if Path(path).suffix.lower() == ".onnx":
+        from escape_cli.nn.onnx_weights import checkpoint_from_onnx
+
+        return checkpoint_from_onnx(Path(path))
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         model = EscapeNet(ModelConfig.from_dict(state["config"]))
