@@ -1,7 +1,7 @@
 """Benchmark: end-to-end `complete` of one 2048-point partial to 16384 points, per stage.
 
 Run on demand (`make bench` or `.venv/bin/python bench/bench_complete.py [--model M]`).
-Prints the time of each stage (anchors, encoding, ONNX inference, reconstruction) warm,
+Prints the time of each stage (anchors, encoding, ONNX inference, reconstruction, snap) warm,
 the whole `complete()` call warm, and the whole `escape complete` command cold (a new
 process: imports, model load and file I/O included), with each stage's share of the
 warm total and the cold/warm ratio, all measured in the same run.
@@ -46,6 +46,7 @@ def main() -> None:
     from escape_cli.pipeline import complete
     from escape_cli.reconstruction import reconstruct
     from escape_cli.sampling import prepare_input
+    from escape_cli.snap import snap_to_scan
 
     net = load_model(args.model)
     cloud = read_points(args.input)
@@ -58,7 +59,8 @@ def main() -> None:
     t_enc, feats = timed(lambda: distance_matrix(prepared, anchors.points), args.repeats)
     t_net, pred = timed(lambda: net.predict(feats[None].astype(np.float32)), args.repeats)
     pred = pred[0].astype(np.float64)
-    t_rec, _ = timed(lambda: reconstruct(pred, anchors.points, reference_points=prepared[:unique]), args.repeats)
+    t_rec, rec = timed(lambda: reconstruct(pred, anchors.points, reference_points=prepared[:unique]), args.repeats)
+    t_snap, _ = timed(lambda: snap_to_scan(rec.points, prepared[:unique]), args.repeats)
     t_total, result = timed(lambda: complete(cloud, net), args.repeats)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -75,7 +77,7 @@ def main() -> None:
 
     stages = [
         ("prepare input (FPS to N rows)", t_prep), ("anchors", t_anchor), ("encoding", t_enc),
-        ("ONNX inference", t_net), ("reconstruction (batched LM)", t_rec),
+        ("ONNX inference", t_net), ("reconstruction (batched LM)", t_rec), ("snap to scan", t_snap),
     ]
     print(f"\n{'stage':34s} {'ms (median)':>12s} {'share of warm total':>20s}")
     for name, t in stages:

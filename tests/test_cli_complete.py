@@ -52,6 +52,18 @@ def test_residuals_and_anchors_out(scan, tmp_path, tiny_model):
     assert read_points(anchors).shape == (8, 3)
 
 
+def test_snap_radius_option(scan, tmp_path, tiny_model):
+    outs = {}
+    for radius in ("0", "10"):
+        out = tmp_path / f"out-{radius}.ply"
+        res = run_escape("complete", scan, "-o", out, "--model", tiny_model, "--snap-radius", radius, "--json")
+        assert res.exit_code == 0, res.stderr
+        outs[radius] = json.loads(res.stdout)["snapped"]
+    assert outs["0"] == 0 and outs["10"] > 0
+    res = run_escape("complete", scan, "-o", tmp_path / "bad.ply", "--model", tiny_model, "--snap-radius", "-1")
+    assert res.exit_code != 0 and not (tmp_path / "bad.ply").exists()
+
+
 def test_batch_with_a_corrupt_file_completes_the_others(tmp_path, rng, tiny_model):
     folder = tmp_path / "scans"
     folder.mkdir()

@@ -62,3 +62,17 @@ def test_too_small_and_degenerate_inputs(tiny_model):
         complete(np.full((100, 3), np.nan), tiny_model)
     with pytest.raises(DegenerateGeometryError):
         complete(np.outer(np.linspace(0, 1, 100), [1.0, 2.0, 3.0]), tiny_model)
+
+
+def test_snap_radius_controls_snapping(tiny_model, rng):
+    cloud = partial_cloud(rng, 400)
+    off = complete(cloud, tiny_model, output_points=1000, snap_radius=0.0)
+    assert not off.is_snapped.any() and off.summary()["snapped"] == 0
+    wide = complete(cloud, tiny_model, output_points=1000, snap_radius=10.0)
+    assert wide.is_snapped.any()
+    assert not (wide.is_snapped & wide.is_observed).any(), "observed points are never snapped"
+    # snapping moves points towards the scan, never away from it
+    gap = lambda pts: np.min(np.linalg.norm(pts[:, None] - cloud[None], axis=2), axis=1)  # noqa: E731
+    assert gap(wide.points).mean() <= gap(off.points).mean() + 1e-9
+    with pytest.raises(ValueError, match="snap_radius"):
+        complete(cloud, tiny_model, snap_radius=-1.0)

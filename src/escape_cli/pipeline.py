@@ -1,4 +1,4 @@
-"""End-to-end completion of one cloud: normalise, anchors, encode, network, reconstruct, merge.
+"""End-to-end completion of one cloud: normalise, anchors, encode, network, reconstruct, snap, merge.
 
     from escape_cli import complete
     result = complete(points)          # points : (N, 3) in any frame and units
@@ -28,6 +28,7 @@ class Completion:
     residuals : (M,) float64, per-point reconstruction residual in input units (0 for
         observed points); a confidence measure.
     is_observed : (M,) bool, True for points copied from the input.
+    is_snapped : (M,) bool, True for predicted points pulled onto the scan's surface.
     anchors : (K, 3) float64, the anchors in the input's frame.
     anchor_indices : (K,) int64, rows of the network input (the FPS-ordered subsample).
     near_planar : bool, the anchors were nearly coplanar (less reliable depth).
@@ -37,6 +38,7 @@ class Completion:
     points: np.ndarray
     residuals: np.ndarray
     is_observed: np.ndarray
+    is_snapped: np.ndarray
     anchors: np.ndarray
     anchor_indices: np.ndarray
     near_planar: bool
@@ -47,6 +49,7 @@ class Completion:
         return {
             "points": int(len(self.points)),
             "observed": int(self.is_observed.sum()),
+            "snapped": int(self.is_snapped.sum()),
             "near_planar_anchors": bool(self.near_planar),
             "residual_mean": float(self.residuals[predicted].mean()) if predicted.any() else 0.0,
             "residual_p95": float(np.quantile(self.residuals[predicted], 0.95)) if predicted.any() else 0.0,
@@ -61,6 +64,7 @@ def complete(
     normalize: str = "auto",
     output_points: int = 16384,
     keep_input: bool = True,
+    snap_radius: float | None = None,
     solver: str = "batched",
     threads: int = 0,
 ) -> Completion:
@@ -75,6 +79,9 @@ def complete(
         data already in PCN units).
     output_points : M, the size of the returned cloud.
     keep_input : merge the observed points into the output.
+    snap_radius : pull predicted points within about this distance of the scan onto its
+        local surface (`escape_cli.snap`), in the network's units; None for the default
+        (`SNAP_RADIUS`), 0 to turn it off.
     solver : "batched" (fast, guarded LM) or "scipy" (per-point reference LM).
 
     Returns
@@ -87,9 +94,12 @@ def complete(
     from escape_cli.normalize import Normalization, fit_normalization
     from escape_cli.reconstruction import reconstruct
     from escape_cli.sampling import prepare_input
+    from escape_cli.snap import SNAP_RADIUS, snap_to_scan
 
     if normalize not in NORMALIZE_MODES:
         raise ValueError(f"normalize must be one of {NORMALIZE_MODES}, got {normalize!r}")
+    if snap_radius is not None and not (np.isfinite(snap_radius) and snap_radius >= 0):
+        raise ValueError(f"snap_radius must be a finite number >= 0, got {snap_radius}")
     if output_points < 1:
         raise PointCloudError(f"output size must be positive, got {output_points}")
     pts = as_points(points, "input cloud", min_points=1)
@@ -109,18 +119,22 @@ def complete(
     predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
     rec = reconstruct(predicted, anchors.points, method=solver, reference_points=prepared[:unique])
 
-    out = rec.points  # (M', 3)
+    snap = snap_to_scan(rec.points, prepared[:unique], SNAP_RADIUS if snap_radius is None else snap_radius)
+    out = snap.points  # (M', 3)
     residuals = rec.residuals  # (M',)
     observed = np.zeros(len(out), dtype=bool)
+    snapped = snap.moved
     if keep_input:
         out = np.concatenate([out, prepared[:unique]])
         residuals = np.concatenate([residuals, np.zeros(unique)])
         observed = np.concatenate([observed, np.ones(unique, dtype=bool)])
+        snapped = np.concatenate([snapped, np.zeros(unique, dtype=bool)])
     rows = resample_rows(len(out), output_points)
     return Completion(
         points=norm.invert(out[rows]),
         residuals=residuals[rows] * norm.scale,
         is_observed=observed[rows],
+        is_snapped=snapped[rows],
         anchors=norm.invert(anchors.points),
         anchor_indices=anchors.indices,
         near_planar=bool(rec.near_planar),

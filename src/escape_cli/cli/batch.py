@@ -35,6 +35,7 @@ class CompletionJob:
         overwrite: bool
         input_format: str | None = None
         threads: int = 0
+        snap_radius: float | None = None
 
 
 def plan_jobs(inputs, output: str, *, fmt, anchors_out, recursive: bool, overwrite: bool) -> list[CompletionJob]:
@@ -80,7 +81,7 @@ def complete_file(job: CompletionJob, settings: CompletionJob.Settings) -> dict:
     with errors_about(display_name(job.source) if job.source != "-" else "<stdin>"):
         result = complete(
             cloud, settings.model, normalize=settings.normalize, output_points=settings.points,
-            keep_input=settings.keep_input, solver=settings.solver, threads=settings.threads,
+            keep_input=settings.keep_input, snap_radius=settings.snap_radius, solver=settings.solver, threads=settings.threads,
         )
     fields = {"residual": result.residuals, "observed": result.is_observed.astype("float32")} if settings.residuals else None
     write_points(job.output, result.points, out_fmt, overwrite=settings.overwrite, fields=fields)

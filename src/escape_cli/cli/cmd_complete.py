@@ -18,6 +18,10 @@ def command(
     normalize: str = typer.Option("auto", "--normalize", help="auto: scale scans to the model's units and back; none: input already in PCN units."),
     points: int = typer.Option(16384, "--points", "-n", min=1, help="Points in each completed cloud."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),
+    snap_radius: Optional[float] = typer.Option(
+        None, "--snap-radius", min=0.0,
+        help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",
+    ),
     anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
     residuals: bool = typer.Option(False, "--residuals", help="Add per-point reconstruction residuals as a 'residual' field."),
     solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),
@@ -39,6 +43,7 @@ def command(
     jobs = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, overwrite=overwrite)
     settings = CompletionJob.Settings(
         model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
+        snap_radius=snap_radius,
         residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite, input_format=input_format,
     )
     summary_stream = sys.stdout if json_out and output != "-" else sys.stderr
