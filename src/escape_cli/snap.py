@@ -68,16 +68,15 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     if radius == 0 or len(pts) == 0 or len(ref) < MIN_SCAN_POINTS:
         return unmoved
 
-    tree = cKDTree(ref)
-    gap = tree.query(pts)[0]  # (M,)
+    dist, rows = cKDTree(ref).query(pts, k=min(neighbours, len(ref)))  # (M, k), nearest first
+    gap = dist[:, 0]  # (M,)
     near = np.flatnonzero(gap < 2.0 * radius)
     if len(near) == 0:
         return unmoved
-    _, rows = tree.query(pts[near], k=min(neighbours, len(ref)))  # (P, k)
-    patch = ref[rows]  # (P, k, 3)
+    patch = ref[rows[near]]  # (P, k, 3)
     centre = patch.mean(axis=1)  # (P, 3)
     offsets = patch - centre[:, None]
-    variance, axes = np.linalg.eigh(np.einsum("pki,pkj->pij", offsets, offsets))  # ascending
+    variance, axes = np.linalg.eigh(offsets.transpose(0, 2, 1) @ offsets)  # ascending
     normal = axes[:, :, 0]  # (P, 3)
     spread = variance[:, 2]
     is_surface = (spread > 0) & (variance[:, 1] > LINE_RATIO * spread) & (variance[:, 0] <= FLAT_RATIO * variance[:, 1])
