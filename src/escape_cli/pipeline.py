@@ -94,12 +94,11 @@ def complete(
     from escape_cli.normalize import Normalization, fit_normalization
     from escape_cli.reconstruction import reconstruct
     from escape_cli.sampling import prepare_input
-    from escape_cli.snap import SNAP_RADIUS, snap_to_scan
+    from escape_cli.snap import SNAP_RADIUS, check_snap_radius, snap_to_scan
 
     if normalize not in NORMALIZE_MODES:
         raise ValueError(f"normalize must be one of {NORMALIZE_MODES}, got {normalize!r}")
-    if snap_radius is not None and not (np.isfinite(snap_radius) and snap_radius >= 0):
-        raise ValueError(f"snap_radius must be a finite number >= 0, got {snap_radius}")
+    snap_radius = SNAP_RADIUS if snap_radius is None else check_snap_radius(snap_radius)
     if output_points < 1:
         raise PointCloudError(f"output size must be positive, got {output_points}")
     pts = as_points(points, "input cloud", min_points=1)
@@ -119,7 +118,7 @@ def complete(
     predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
     rec = reconstruct(predicted, anchors.points, method=solver, reference_points=prepared[:unique])
 
-    snap = snap_to_scan(rec.points, prepared[:unique], SNAP_RADIUS if snap_radius is None else snap_radius)
+    snap = snap_to_scan(rec.points, prepared[:unique], snap_radius)
     out = snap.points  # (M', 3)
     residuals = rec.residuals  # (M',)
     observed = np.zeros(len(out), dtype=bool)

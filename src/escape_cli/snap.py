@@ -17,13 +17,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["SNAP_RADIUS", "SNAP_NEIGHBOURS", "Snap", "snap_to_scan"]
+__all__ = ["SNAP_RADIUS", "SNAP_NEIGHBOURS", "Snap", "check_snap_radius", "snap_to_scan"]
 
 SNAP_RADIUS = 0.05  # in the network's units (PCN scale: objects span about 1)
 SNAP_NEIGHBOURS = 8
 FLAT_RATIO = 0.25  # a surface patch: smallest PCA variance <= FLAT_RATIO * middle one (a cube corner is 0.39)
 LINE_RATIO = 1e-3  # ... and middle variance > LINE_RATIO * largest (not a line)
 MIN_SCAN_POINTS = 3
+
+
+def check_snap_radius(radius) -> float:
+    """The radius as a float; ValueError unless it is finite and >= 0."""
+    if not (np.isfinite(radius) and radius >= 0):
+        raise ValueError(f"snap_radius must be a finite number >= 0, got {radius}")
+    return float(radius)
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,7 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     ref = np.asarray(scan, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3 or ref.ndim != 2 or ref.shape[1] != 3:
         raise ValueError(f"points and scan must have shape (M, 3) and (N, 3), got {pts.shape} and {ref.shape}")
-    if not np.isfinite(radius) or radius < 0:
-        raise ValueError(f"snap radius must be a finite number >= 0, got {radius}")
+    radius = check_snap_radius(radius)
     if neighbours < MIN_SCAN_POINTS:
         raise ValueError(f"a plane needs at least {MIN_SCAN_POINTS} neighbours, got {neighbours}")
     unmoved = Snap(points=pts.copy(), moved=np.zeros(len(pts), dtype=bool))

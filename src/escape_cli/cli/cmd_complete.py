@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import FORMAT, INPUT_FORMAT, OVERWRITE
+from escape_cli.cli.options import FORMAT, INPUT_FORMAT, OVERWRITE, SNAP_RADIUS
 
 
 def command(
@@ -18,10 +18,7 @@ def command(
     normalize: str = typer.Option("auto", "--normalize", help="auto: scale scans to the model's units and back; none: input already in PCN units."),
     points: int = typer.Option(16384, "--points", "-n", min=1, help="Points in each completed cloud."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),
-    snap_radius: Optional[float] = typer.Option(
-        None, "--snap-radius", min=0.0,
-        help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",
-    ),
+    snap_radius: Optional[float] = SNAP_RADIUS,
     anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
     residuals: bool = typer.Option(False, "--residuals", help="Add per-point reconstruction residuals as a 'residual' field."),
     solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),

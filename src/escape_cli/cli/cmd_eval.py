@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE
+from escape_cli.cli.options import OVERWRITE, SNAP_RADIUS
 
 
 def command(
@@ -28,10 +28,7 @@ def command(
     model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: the shipped one)."),
     baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge observed points into the output."),
-    snap_radius: Optional[float] = typer.Option(
-        None, "--snap-radius", min=0.0,
-        help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",
-    ),
+    snap_radius: Optional[float] = SNAP_RADIUS,
     normalize: str = typer.Option("none", "--normalize", help="none (data already in PCN units) or auto."),
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
     json_path: Optional[Path] = typer.Option(None, "--json", help="Write every number to this JSON file."),
@@ -45,7 +42,7 @@ def command(
     from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pairs, evaluate_pcn
     from escape_cli.inference import load_model
     from escape_cli.pipeline import complete
-    from escape_cli.snap import SNAP_RADIUS
+    from escape_cli.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
 
     if dataset not in ("pcn", "pair", "kitti"):
         raise typer.BadParameter("must be pcn, pair or kitti", param_hint="--dataset")
@@ -67,7 +64,7 @@ def command(
     console = Console(stderr=True)
     settings = {
         "dataset": dataset, "root": str(root), "model": str(net.path), "rotate": rotate, "seed": seed,
-        "keep_input": keep_input, "snap_radius": SNAP_RADIUS if snap_radius is None else snap_radius, "normalize": normalize,
+        "keep_input": keep_input, "snap_radius": DEFAULT_SNAP_RADIUS if snap_radius is None else snap_radius, "normalize": normalize,
     }
     if dataset == "pcn":
         settings.update(split=split, noise=noise, drop=drop, limit=limit)
