@@ -39,14 +39,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     args = parser.parse_args()
 
-    from escape_cli.anchors import select_anchors
-    from escape_cli.encoding import distance_matrix
+    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.encoding import distance_matrix
     from escape_cli.inference import load_model
     from escape_cli.io import read_points
     from escape_cli.pipeline import complete
-    from escape_cli.reconstruction import reconstruct
-    from escape_cli.sampling import prepare_input
-    from escape_cli.snap import snap_to_scan
+    from escape_cli.core.reconstruction import reconstruct
+    from escape_cli.core.sampling import prepare_input
+    from escape_cli.core.snap import snap_to_scan
 
     net = load_model(args.model)
     cloud = read_points(args.input)

@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from escape_cli.reconstruction import reconstruct
+from escape_cli.core.reconstruction import reconstruct
 
 
 def table(n: int, rng: np.random.Generator) -> np.ndarray:

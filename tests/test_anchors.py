@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from conftest import realdata_clouds, realdata_id
-from escape_cli.anchors import METHODS, select_anchors
-from escape_cli.curvature import surface_variation
-from escape_cli.encoding import distance_matrix
+from escape_cli.core.anchors import METHODS, select_anchors
+from escape_cli.core.curvature import surface_variation
+from escape_cli.core.encoding import distance_matrix
 from escape_cli.errors import DegenerateGeometryError, PointCloudError
-from escape_cli.rotations import random_rotation
-from escape_cli.sampling import farthest_point_sampling, prepare_input
+from escape_cli.core.rotations import random_rotation
+from escape_cli.core.sampling import farthest_point_sampling, prepare_input
 from tests_support import ellipsoid_surface, partial_cloud
 
 MAX_REAL_POINTS = 6000  # larger real scans are thinned (fixed stride) to keep the test fast

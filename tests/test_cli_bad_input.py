@@ -145,7 +145,7 @@ def case_too_few_points(tmp):
 
 
 def case_fewer_than_four_anchors(tmp):
-    return ["anchors", _ply_file(tmp), "--json", "--k", "3"], "at least 4 anchors"
+    return ["anchors", _ply_file(tmp), "--json", "--k", "3"], "the number of anchors) must be at least 4"
 
 
 def case_all_points_identical(tmp):
@@ -210,7 +210,7 @@ def case_missing_npy_for_decode(tmp):
 def case_one_dimensional_distances(tmp):
     _, anchors = _encoded(tmp)
     write_array(tmp / "v.npy", np.ones(8))
-    return ["decode", tmp / "v.npy", "-a", anchors, "-o", tmp / "o.ply"], "expected (M, K)"
+    return ["decode", tmp / "v.npy", "-a", anchors, "-o", tmp / "o.ply"], "must have shape (M, K)"
 
 
 def case_nan_distances(tmp):
@@ -218,7 +218,7 @@ def case_nan_distances(tmp):
     values = np.load(distances)
     values[3, 2] = np.nan
     write_array(tmp / "nan.npy", values)
-    return ["decode", tmp / "nan.npy", "-a", anchors, "-o", tmp / "o.ply"], "nan.npy: distances contain NaN"
+    return ["decode", tmp / "nan.npy", "-a", anchors, "-o", tmp / "o.ply"], "NaN or infinite values in "
 
 
 def case_distances_anchors_k_mismatch(tmp):

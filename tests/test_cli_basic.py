@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from cli_runner import run_escape
 
-from escape_cli.anchors import select_anchors
-from escape_cli.encoding import distance_matrix
+from escape_cli.core.anchors import select_anchors
+from escape_cli.core.encoding import distance_matrix
 from escape_cli.io import read_point_fields, read_points, write_points
 from escape_cli.io.ply import parse_ply
 

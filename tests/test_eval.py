@@ -11,7 +11,7 @@ from cli_runner import run_escape
 from escape_cli.data.pcn import read_pcd
 from escape_cli.evaluation import Perturbation
 from escape_cli.io import read_points
-from escape_cli.metrics import chamfer_l1_naive, chamfer_l2_naive, fscore_naive
+from escape_cli.core.metrics import chamfer_l1_naive, chamfer_l2_naive, fscore_naive
 from tests_support import write_tiny_pcn_tree
 
 

@@ -11,7 +11,8 @@ torch = pytest.importorskip("torch")
 
 from escape_cli.errors import EscapeError, ModelError, OutputExistsError  # noqa: E402
 from escape_cli.inference import CompletionModel  # noqa: E402
-from escape_cli.nn.export import export_onnx, sample_input  # noqa: E402
+from escape_cli.nn.export import export_onnx  # noqa: E402
+from escape_cli.nn.parity import sample_input  # noqa: E402
 from tests_support import write_tiny_checkpoint  # noqa: E402
 
 

@@ -1,4 +1,4 @@
-"""Tests for escape_cli.metrics: KD-tree metrics agree with brute force, match the
+"""Tests for escape_cli.core.metrics: KD-tree metrics agree with brute force, match the
 formulas on hand-made cases, and have the expected symmetries."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from escape_cli.errors import EscapeError, PointCloudError
-from escape_cli.metrics import (
+from escape_cli.core.metrics import (
     chamfer_l1,
     chamfer_l1_naive,
     chamfer_l2,
@@ -108,7 +108,7 @@ def test_fidelity_zero_when_input_inside_output(rng):
 
 
 def test_invariant_under_rigid_motion(rng):
-    from escape_cli.rotations import random_rotation
+    from escape_cli.core.rotations import random_rotation
 
     pred, gt = rng.normal(size=(200, 3)), rng.normal(size=(300, 3))
     rot, t = random_rotation(rng), rng.normal(size=3)

@@ -7,13 +7,13 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from escape_cli.anchors import select_anchors  # noqa: E402
-from escape_cli.encoding import distance_matrix  # noqa: E402
+from escape_cli.core.anchors import select_anchors  # noqa: E402
+from escape_cli.core.encoding import distance_matrix  # noqa: E402
 from escape_cli.nn.config import ModelConfig, get_preset  # noqa: E402
 from escape_cli.nn.loss import chamfer_l1, chamfer_l1_naive  # noqa: E402
 from escape_cli.nn.model import EscapeNet  # noqa: E402
-from escape_cli.rotations import random_rotation  # noqa: E402
-from escape_cli.sampling import prepare_input  # noqa: E402
+from escape_cli.core.rotations import random_rotation  # noqa: E402
+from escape_cli.core.sampling import prepare_input  # noqa: E402
 
 TINY = get_preset("tiny")
 
@@ -92,7 +92,7 @@ def test_a_few_steps_lower_the_loss(rng):
 
 def test_differentiable_reconstruction_is_the_lm_solution_with_its_implicit_gradient(rng):
     from escape_cli.nn.loss import reconstruct_differentiable
-    from escape_cli.reconstruction import reconstruct
+    from escape_cli.core.reconstruction import reconstruct
 
     anchors = rng.normal(size=(8, 3))
     points = 0.5 * rng.normal(size=(6, 3))

@@ -1,4 +1,4 @@
-"""Tests for escape_cli.normalize: exact round trips, rotation invariance, KITTI boxes."""
+"""Tests for escape_cli.core.normalize: exact round trips, rotation invariance, KITTI boxes."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from escape_cli.errors import DegenerateGeometryError, EscapeError, PointCloudError
-from escape_cli.normalize import (
+from escape_cli.core.normalize import (
     BoxNormalization,
     Normalization,
     box_normalization,
@@ -19,7 +19,7 @@ from escape_cli.normalize import (
     cloud_radius_naive,
     fit_normalization,
 )
-from escape_cli.rotations import random_rotation
+from escape_cli.core.rotations import random_rotation
 
 # ------------------------------------------------------------ centroid + radius
 

@@ -11,7 +11,8 @@ torch = pytest.importorskip("torch")
 from escape_cli.errors import ModelError  # noqa: E402
 from escape_cli.nn.export import export_onnx  # noqa: E402
 from escape_cli.nn.onnx_weights import state_dict_from_onnx  # noqa: E402
-from escape_cli.nn.train import Trainer, TrainOptions, load_checkpoint_model  # noqa: E402
+from escape_cli.nn.checkpoint import load_checkpoint_model  # noqa: E402
+from escape_cli.nn.train import Trainer, TrainOptions  # noqa: E402
 from tests_support import write_tiny_checkpoint, write_tiny_pcn_tree  # noqa: E402
 
 

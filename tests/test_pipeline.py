@@ -7,8 +7,8 @@ import pytest
 
 from escape_cli import complete
 from escape_cli.errors import DegenerateGeometryError, PointCloudError
-from escape_cli.metrics import chamfer_l1
-from escape_cli.rotations import random_rotation
+from escape_cli.core.metrics import chamfer_l1
+from escape_cli.core.rotations import random_rotation
 from tests_support import partial_cloud
 
 

@@ -1,4 +1,4 @@
-"""Tests for escape_cli.rotations: orthonormal, det +1, seeded, the paper's composition."""
+"""Tests for escape_cli.core.rotations: orthonormal, det +1, seeded, the paper's composition."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from escape_cli.errors import EscapeError
-from escape_cli.rotations import is_rotation, paper_rotation, random_rotation, rotation_about_axis
+from escape_cli.core.rotations import is_rotation, paper_rotation, random_rotation, rotation_about_axis
 
 
 @pytest.mark.parametrize("make", [random_rotation, paper_rotation])

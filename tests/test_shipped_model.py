@@ -49,8 +49,8 @@ def test_completes_every_real_scan(path, realdata_dir, tmp_path):
 def test_shipped_model_is_equivariant_end_to_end():
     from escape_cli import complete
     from escape_cli.io import read_points
-    from escape_cli.metrics import chamfer_l1
-    from escape_cli.rotations import random_rotation
+    from escape_cli.core.metrics import chamfer_l1
+    from escape_cli.core.rotations import random_rotation
 
     cloud = read_points(REPO / "examples" / "chair.pcd")
     base = complete(cloud).points

@@ -1,12 +1,12 @@
-"""`escape_cli.snap`: predicted points near the scan move onto its surface, nothing else moves."""
+"""`escape_cli.core.snap`: predicted points near the scan move onto its surface, nothing else moves."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from escape_cli.rotations import random_rotation
-from escape_cli.snap import SNAP_RADIUS, snap_to_scan
+from escape_cli.core.rotations import random_rotation
+from escape_cli.core.snap import SNAP_RADIUS, snap_to_scan
 
 
 def plane_scan(rng, count: int = 400) -> np.ndarray:

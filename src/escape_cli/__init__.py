@@ -4,7 +4,7 @@
     result = complete(points)   # (N, 3) partial scan -> result.points (16384, 3)
 """
 
-__version__ = "0.1.0"
+from escape_cli.version import __version__
 
 __all__ = ["complete", "Completion", "__version__"]
 

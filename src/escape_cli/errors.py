@@ -11,11 +11,17 @@ class EscapeError(Exception):
     exit_code = 1
 
 
+class ParameterError(EscapeError, ValueError):
+    """An argument or option value is out of range or of the wrong kind (a usage error)."""
+
+    exit_code = 2
+
+
 class InputFileError(EscapeError):
     """A file is missing, unreadable, corrupt or in an unknown format."""
 
 
-class PointCloudError(EscapeError):
+class PointCloudError(EscapeError, ValueError):
     """A cloud cannot be used: empty, too small, non-finite, wrong shape."""
 
 

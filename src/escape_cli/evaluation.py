@@ -48,7 +48,7 @@ class Perturbation:
 
 
 def pcn_metrics(pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    from escape_cli.metrics import point_metrics
+    from escape_cli.core.metrics import point_metrics
 
     m = point_metrics(pred, truth, threshold=0.01)
     return {"cd_l1_x1000": 1000 * m["cd_l1"], "cd_l2_x1000": 1000 * m["cd_l2"], "fscore_1pct": m["fscore"]}
@@ -133,7 +133,7 @@ def evaluate_pcn(
 
 def _score_sample(partial, truth, completers, rotate: bool, rng, saver=None) -> dict[str, float]:
     """Metrics of every completer on one (partial, truth) pair, canonical and optionally rotated."""
-    from escape_cli.rotations import paper_rotation
+    from escape_cli.core.rotations import paper_rotation
 
     poses = {"": np.eye(3)}
     if rotate:
@@ -164,8 +164,7 @@ def evaluate_pairs(
     other cloud file), in the same frame, like realdata's p2c_chair. They are scored as
     one category named after the folder.
     """
-    from escape_cli.cli.inputs import CLOUD_SUFFIXES
-    from escape_cli.io import read_points
+    from escape_cli.io import CLOUD_SUFFIXES, read_points
 
     root = Path(root)
     files = sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES)
@@ -251,9 +250,9 @@ def evaluate_kitti(
     (a vehicle's realistic motion), as in the paper's KITTI table.
     """
     from escape_cli.io import read_points
-    from escape_cli.metrics import chamfer_l2, fidelity
-    from escape_cli.normalize import box_normalization
-    from escape_cli.rotations import rotation_about_axis
+    from escape_cli.core.metrics import chamfer_l2, fidelity
+    from escape_cli.core.normalize import box_normalization
+    from escape_cli.core.rotations import rotation_about_axis
 
     records = []
     for i, (car_path, box_path) in enumerate(kitti_pairs(root)):

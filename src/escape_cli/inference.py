@@ -5,13 +5,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
-from escape_cli.errors import ModelError
+from escape_cli.core.settings import AnchorSettings
+from escape_cli.errors import EscapeError, ModelError
 
 DEFAULT_MODEL_NAME = "escape-small.onnx"
 MODEL_ENV = "ESCAPE_MODEL"
@@ -27,14 +27,6 @@ def default_model_path() -> Path:
         if candidate.exists():
             return candidate
     raise ModelError(f"no model found: pass --model or set {MODEL_ENV} (looked for models/{DEFAULT_MODEL_NAME})")
-
-
-@dataclass(frozen=True)
-class AnchorParams:
-    k: int
-    method: str
-    radius: float
-    knn: int
 
 
 class CompletionModel:
@@ -70,9 +62,12 @@ class CompletionModel:
         return None if value is None else float(value)
 
     @property
-    def anchors(self) -> AnchorParams:
-        a = self.meta.get("anchors", {})
-        return AnchorParams(int(a.get("k", self.k)), a.get("method", "ball"), float(a.get("radius", 0.075)), int(a.get("knn", 16)))
+    def anchors(self) -> AnchorSettings:
+        """How the model's anchors are chosen (its metadata; defaults where it is silent)."""
+        try:
+            return AnchorSettings.from_dict({"k": self.k, **(self.meta.get("anchors") or {})})
+        except EscapeError as err:
+            raise ModelError(f"{self.path.with_suffix('.json')}: bad anchor settings: {err}") from None
 
     def predict(self, partial_distances: np.ndarray) -> np.ndarray:
         """partial_distances : (B, N, K) -> (B, M, K) float32."""

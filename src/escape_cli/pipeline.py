@@ -12,7 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.errors import PointCloudError
-from escape_cli.sampling import as_points, count_distinct
+from escape_cli.core.checks import as_points
+from escape_cli.core.params import as_choice, as_count
+from escape_cli.core.sampling import count_distinct, resample_rows
 
 MIN_INPUT_POINTS = 16
 NORMALIZE_MODES = ("auto", "none")
@@ -80,7 +82,7 @@ def complete(
     output_points : M, the size of the returned cloud.
     keep_input : merge the observed points into the output.
     snap_radius : pull predicted points within about this distance of the scan onto its
-        local surface (`escape_cli.snap`), in the network's units; None for the default
+        local surface (`escape_cli.core.snap`), in the network's units; None for the default
         (`SNAP_RADIUS`), 0 to turn it off.
     solver : "batched" (fast, guarded LM) or "scipy" (per-point reference LM).
 
@@ -88,19 +90,17 @@ def complete(
     -------
     Completion
     """
-    from escape_cli.anchors import select_anchors
-    from escape_cli.encoding import distance_matrix
+    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.encoding import distance_matrix
     from escape_cli.inference import CompletionModel, load_model
-    from escape_cli.normalize import Normalization, fit_normalization
-    from escape_cli.reconstruction import reconstruct
-    from escape_cli.sampling import prepare_input
-    from escape_cli.snap import SNAP_RADIUS, check_snap_radius, snap_to_scan
+    from escape_cli.core.normalize import Normalization, fit_normalization
+    from escape_cli.core.reconstruction import reconstruct
+    from escape_cli.core.sampling import prepare_input
+    from escape_cli.core.snap import SNAP_RADIUS, check_snap_radius, snap_to_scan
 
-    if normalize not in NORMALIZE_MODES:
-        raise ValueError(f"normalize must be one of {NORMALIZE_MODES}, got {normalize!r}")
+    as_choice(normalize, "normalize", NORMALIZE_MODES)
     snap_radius = SNAP_RADIUS if snap_radius is None else check_snap_radius(snap_radius)
-    if output_points < 1:
-        raise PointCloudError(f"output size must be positive, got {output_points}")
+    output_points = as_count(output_points, "output_points", minimum=1)
     pts = as_points(points, "input cloud", min_points=1)
     distinct = count_distinct(pts)
     if distinct < MIN_INPUT_POINTS:
@@ -112,8 +112,7 @@ def complete(
     else:
         norm = Normalization.identity()
     prepared, unique = prepare_input(norm.apply(pts), net.input_points)  # (N', 3)
-    a = net.anchors
-    anchors = select_anchors(prepared[:unique], a.k, a.method, a.radius, a.knn)  # (K, 3)
+    anchors = select_anchors(prepared[:unique], **net.anchors.to_dict())  # (K, 3)
     features = distance_matrix(prepared, anchors.points)  # (N', K)
     predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
     rec = reconstruct(predicted, anchors.points, method=solver, reference_points=prepared[:unique])
@@ -139,17 +138,3 @@ def complete(
         near_planar=bool(rec.near_planar),
         normalization=norm,
     )
-
-
-def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
-    """Deterministic rows to turn `count` points into `size`: a seeded subset, or all plus repeats.
-
-    Depends only on the counts, so it commutes with any rotation of the points.
-    """
-    if size == count:
-        return np.arange(count)
-    rng = np.random.default_rng(seed)
-    if size < count:
-        return np.sort(rng.choice(count, size, replace=False))
-    extra = rng.choice(count, size - count, replace=size - count > count)
-    return np.concatenate([np.arange(count), extra])

@@ -15,6 +15,7 @@ from typing import Sequence
 
 import numpy as np
 
+from escape_cli.core.checks import as_points
 from escape_cli.errors import PointCloudError
 
 BACKGROUND = (255, 255, 255)
@@ -166,11 +167,10 @@ def render_clouds(clouds: Sequence[np.ndarray], values: Sequence[np.ndarray | No
     values = list(values) if values is not None else [None] * len(clouds)
     arrays = []
     for i, cloud in enumerate(clouds):
-        cloud = np.asarray(cloud, dtype=np.float64)
-        if cloud.ndim != 2 or cloud.shape[1] != 3:
-            raise PointCloudError(f"cloud {i} must have shape (N, 3), got {cloud.shape}")
-        cloud = cloud[np.isfinite(cloud).all(axis=1)]
-        arrays.append(cloud)
+        raw = np.asarray(cloud)
+        if raw.ndim == 2 and raw.dtype.kind == "f":
+            raw = raw[np.isfinite(raw).all(axis=1)]  # organised scans: NaN rows are not drawn
+        arrays.append(as_points(raw, f"cloud {i}", min_points=0))
     non_empty = [c for c in arrays if len(c)]
     if not non_empty:
         raise PointCloudError("nothing to render: every cloud is empty")

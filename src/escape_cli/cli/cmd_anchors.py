@@ -45,7 +45,7 @@ def command(
 
     import numpy as np
 
-    from escape_cli.anchors import select_anchors
+    from escape_cli.core.anchors import select_anchors
     from escape_cli.errors import OutputFileError
     from escape_cli.io import display_name, output_format, read_points, write_points
 

@@ -28,11 +28,11 @@ def command(
     Prints one summary line on stderr (points, mean/max residual, anchor spread)
     unless -q.
     """
-    import numpy as np
 
     from escape_cli.errors import InputFileError, OutputFileError, PointCloudError
     from escape_cli.io import display_name, output_format, read_array, read_points, write_points
-    from escape_cli.reconstruction import reconstruct
+    from escape_cli.core.checks import as_rows
+    from escape_cli.core.reconstruction import reconstruct
 
     if distances_path == "-" and anchors_path == "-":
         raise InputFileError("distances and anchors cannot both come from stdin")
@@ -44,11 +44,7 @@ def command(
     # Distances before anchors: in `encode -o - | decode - --anchors A`, A is complete
     # once stdin has ended.
     distances_name = display_name(distances_path)
-    distances = read_array(distances_path)  # (M, K)
-    if distances.ndim != 2 or distances.shape[0] == 0:
-        raise PointCloudError(f"{distances_name}: distances have shape {distances.shape}; expected (M, K) with M >= 1")
-    if not np.all(np.isfinite(distances)):
-        raise PointCloudError(f"{distances_name}: distances contain NaN or infinite values")
+    distances = as_rows(read_array(distances_path), f"{distances_name}: distances", columns=None, min_rows=1, letters="MK")  # (M, K)
     anchors = read_points(anchors_path)  # (K, 3)
     if distances.shape[1] != len(anchors):
         raise PointCloudError(

@@ -50,8 +50,8 @@ def command(
     """
     import numpy as np
 
-    from escape_cli.anchors import select_anchors
-    from escape_cli.encoding import distance_matrix
+    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.encoding import distance_matrix
     from escape_cli.errors import OutputFileError
     from escape_cli.io import display_name, read_points, write_array, write_points
 

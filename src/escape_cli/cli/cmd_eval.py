@@ -42,7 +42,7 @@ def command(
     from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pairs, evaluate_pcn
     from escape_cli.inference import load_model
     from escape_cli.pipeline import complete
-    from escape_cli.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
+    from escape_cli.core.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
 
     if dataset not in ("pcn", "pair", "kitti"):
         raise typer.BadParameter("must be pcn, pair or kitti", param_hint="--dataset")

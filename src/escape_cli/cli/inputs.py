@@ -6,8 +6,7 @@ import glob
 from pathlib import Path
 
 from escape_cli.errors import InputFileError
-
-CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".pts", ".csv", ".npy", ".npz")
+from escape_cli.io import CLOUD_SUFFIXES
 
 
 def expand_inputs(items: list[str], recursive: bool = False) -> list[str]:

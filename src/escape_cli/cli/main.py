@@ -12,7 +12,7 @@ from typing import Optional
 
 import typer
 
-from escape_cli import __version__
+from escape_cli.version import __version__
 from escape_cli.cli import (
     cmd_anchors,
     cmd_average_checkpoints,
@@ -70,10 +70,47 @@ app.command("render")(cmd_render.command)
 app.add_typer(cmd_dataset.app, name="dataset")
 
 
+GLOBAL_OPTIONS = ("-q", "--quiet", "-v", "-vv", "-vvv", "--verbose", "--version")
+
+
+def usage_error_line(err: typer.TyperException) -> str:
+    """One line for a command-line usage error: the option concerned, then what is wrong with it.
+
+    `err` is one of the usage errors of the click that typer carries (UsageError and its
+    subclasses BadParameter, MissingParameter, NoSuchOption...), told apart by their
+    attributes so that no private module is imported.
+    """
+    kind = type(err).__name__
+    option = getattr(err, "option_name", None)
+    if kind == "NoSuchOption" and option in GLOBAL_OPTIONS:
+        return f"{option} is a global option: put it before the command (escape {option} COMMAND ...)"
+    param = getattr(err, "param", None)
+    hint = getattr(err, "param_hint", None) or (param.opts[0] if getattr(param, "opts", None) else getattr(param, "name", None))
+    if isinstance(hint, (list, tuple)):
+        hint = hint[0]
+    if kind == "MissingParameter" and hint:
+        return f"{hint}: missing (required)"
+    if kind == "BadParameter" and hint:
+        return f"{str(hint).strip(chr(39))}: {' '.join(str(err.message).split())}"
+    return " ".join(err.format_message().split())
+
+
 def main() -> None:
-    """Run the CLI; turn escape's own errors into one line and an exit code."""
+    """Run the CLI; turn usage errors and escape's own errors into one line and an exit code."""
     try:
-        app(standalone_mode=True)
+        code = app(standalone_mode=False)
+    except typer.Abort:
+        print("escape: interrupted", file=sys.stderr)
+        sys.exit(130)
+    except typer.TyperException as err:  # click's errors as typer carries them
+        if type(err).__name__ == "NoArgsIsHelpError":
+            print(err.format_message(), file=sys.stderr)
+            sys.exit(2)
+        if getattr(err, "exit_code", 1) == 2:
+            print(f"escape: error: {usage_error_line(err)} (see --help)", file=sys.stderr)
+            sys.exit(2)
+        print(f"escape: error: {' '.join(err.format_message().split())}", file=sys.stderr)
+        sys.exit(getattr(err, "exit_code", 1))
     except EscapeError as err:
         print(f"escape: error: {err}", file=sys.stderr)
         sys.exit(err.exit_code)
@@ -87,6 +124,7 @@ def main() -> None:
             raise
         print(f"escape: internal error: {type(err).__name__}: {err} (run with -vv for the traceback)", file=sys.stderr)
         sys.exit(70)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ from typing import Iterator, Optional
 
 import typer
 
+from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.errors import OutputExistsError
 
 OVERWRITE = typer.Option(False, "--overwrite", help="Replace output files that already exist.")
@@ -31,12 +32,14 @@ def check_output(path: Optional[Path | str], overwrite: bool) -> None:
 
 # --- anchors, input format, ascii bodies, summaries (anchors / encode / decode) ---
 
-ANCHOR_K = typer.Option(8, "--k", "-k", help="Number of anchors (at least 4).")
+ANCHOR_K = typer.Option(ANCHOR_DEFAULTS.k, "--k", "-k", help="Number of anchors (at least 4).")
 ANCHOR_METHOD = typer.Option(
-    "ball", "--method", help="Anchor choice: ball (FPS refined to high curvature), fps, or cluster."
+    ANCHOR_DEFAULTS.method, "--method", help="Anchor choice: ball (FPS refined to high curvature), fps, or cluster."
 )
-ANCHOR_RADIUS = typer.Option(0.075, "--radius", help="Search radius of the ball refinement, in the cloud's units.")
-ANCHOR_KNN = typer.Option(16, "--knn", help="Neighbours for the curvature estimate.")
+ANCHOR_RADIUS = typer.Option(
+    ANCHOR_DEFAULTS.radius, "--radius", help="Search radius of the ball refinement, in the cloud's units."
+)
+ANCHOR_KNN = typer.Option(ANCHOR_DEFAULTS.knn, "--knn", help="Neighbours for the curvature estimate.")
 INPUT_FORMAT = typer.Option(
     None, "--input-format", help="Input file format; default: from the extension (sniffed for stdin)."
 )

@@ -22,7 +22,8 @@ from typing import Sequence
 
 import numpy as np
 
-from escape_cli.errors import DatasetError, PointCloudError
+from escape_cli.core.checks import as_points
+from escape_cli.errors import DatasetError
 
 log = logging.getLogger("escape")
 
@@ -117,9 +118,7 @@ def write_pcd(path: str | Path, points: np.ndarray) -> None:
     path : str or Path
     points : (N, 3) float
     """
-    points = np.ascontiguousarray(points, dtype="<f4")
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise PointCloudError(f"points must have shape (N, 3), got {points.shape}")
+    points = np.ascontiguousarray(as_points(points, "points"), dtype="<f4")
     n = len(points)
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
@@ -354,14 +353,10 @@ def resample_points(points: np.ndarray, n_points: int, rng: np.random.Generator)
     -------
     resampled : (n_points, 3), same dtype as `points`
     """
-    if len(points) == 0:
-        raise PointCloudError("cannot resample an empty cloud")
-    if n_points < 1:
-        raise PointCloudError(f"n_points must be positive, got {n_points}")
-    if len(points) >= n_points:
-        return points[rng.choice(len(points), size=n_points, replace=False)]
-    extra = rng.choice(len(points), size=n_points - len(points), replace=True)
-    return points[rng.permutation(np.concatenate([np.arange(len(points)), extra]))]
+    from escape_cli.core.sampling import resample_rows
+
+    as_points(points, "the cloud to resample", min_points=1)
+    return points[resample_rows(len(points), n_points, rng)]
 
 
 def read_sample(ref: SampleRef, n_points: int | None = 2048, seed: int = 0) -> PCNSample:

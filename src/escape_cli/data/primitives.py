@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from escape_cli.core.checks import as_points
 from escape_cli.errors import DegenerateGeometryError
 
 INSIDE_MARGIN = 1e-6
@@ -60,9 +61,7 @@ class ConvexPart:
         DegenerateGeometryError
             When the points span no volume (flat or collinear).
         """
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
-            raise DegenerateGeometryError(f"a convex part needs (V>=4, 3) points, got {points.shape}")
+        points = as_points(points, "a convex part's points", min_points=4)
         try:
             hull = ConvexHull(points)
         except Exception as err:  # qhull raises its own QhullError

@@ -23,7 +23,7 @@ from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
-from escape_cli import __version__
+from escape_cli.version import __version__
 from escape_cli.data.depth_views import DepthCamera, DepthScanner
 from escape_cli.data.pcn import CATEGORIES, SPLIT_FILE, SPLITS, write_model, write_split_file
 from escape_cli.data.shapes import generate_shape

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from escape_cli.core.checks import as_points
 from escape_cli.errors import InputFileError, PointCloudError
 from escape_cli.io.common import Fields
 from escape_cli.io.files import display_name, is_stdio, read_input_bytes, write_output_bytes
@@ -28,6 +29,7 @@ from escape_cli.io.ply import is_ply, parse_ply, serialize_ply
 from escape_cli.io.text import TEXT_FORMATS, parse_text, serialize_text
 
 __all__ = [
+    "CLOUD_SUFFIXES",
     "FORMATS",
     "display_name",
     "format_from_path",
@@ -44,6 +46,8 @@ __all__ = [
 log = logging.getLogger("escape")
 
 FORMATS = ("ply", "pcd", *TEXT_FORMATS, "npy", "npz")
+CLOUD_SUFFIXES = tuple(f".{fmt}" for fmt in FORMATS)
+"""File name endings of point-cloud files (what a folder input is searched for)."""
 STDOUT_DEFAULT_FORMAT = "ply"
 COORDINATE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -288,12 +292,7 @@ def _finite_rows(xyz: np.ndarray, fields: Fields, name: str) -> tuple[np.ndarray
 
 
 def _checked_points(points, name: str) -> np.ndarray:
-    array = np.asarray(points, dtype=np.float64)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise PointCloudError(f"cannot write {name}: points have shape {array.shape}, expected (N, 3)")
-    if len(array) == 0:
-        raise PointCloudError(f"cannot write {name}: the cloud has no points")
-    return array
+    return as_points(points, f"cannot write {name}: the cloud", min_points=1)
 
 
 def _checked_fields(fields: dict, n_points: int, name: str) -> Fields:

@@ -70,3 +70,23 @@ def format_rows(columns: list[np.ndarray], dtypes: list[np.dtype], separator: st
     buffer = io.BytesIO()
     np.savetxt(buffer, table, fmt=formats, delimiter=separator)
     return buffer.getvalue()
+
+
+def pack_rows(columns: list[np.ndarray], dtypes: list[np.dtype]) -> bytes:
+    """Little-endian binary rows, one per point: column j as `dtypes[j]` (PLY and PCD bodies).
+
+    Parameters
+    ----------
+    columns : list of (N,) arrays
+    dtypes : list of numpy dtypes, one per column.
+
+    Returns
+    -------
+    bytes
+        N rows of sum(itemsize) bytes each, no padding.
+    """
+    row = np.dtype([(f"c{i}", np.dtype(d).newbyteorder("<")) for i, d in enumerate(dtypes)])
+    table = np.empty(len(columns[0]) if columns else 0, dtype=row)
+    for i, column in enumerate(columns):
+        table[f"c{i}"] = column
+    return table.tobytes()

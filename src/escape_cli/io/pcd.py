@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.errors import InputFileError
-from escape_cli.io.common import Fields, format_rows, tokens_to_float
+from escape_cli.io.common import Fields, format_rows, pack_rows, tokens_to_float
 from escape_cli.io.lzf import LZFError, lzf_decompress
 
 HEADER_KEYWORDS = (
@@ -154,11 +154,7 @@ def serialize_pcd(
     columns = [points[:, 0], points[:, 1], points[:, 2], *fields.values()]
     if not binary:
         return header + format_rows(columns, dtypes)
-    row = np.dtype([(f"c{i}", d.newbyteorder("<")) for i, d in enumerate(dtypes)])
-    table = np.empty(count, dtype=row)
-    for i, column in enumerate(columns):
-        table[f"c{i}"] = column
-    return header + table.tobytes()
+    return header + pack_rows(columns, dtypes)
 
 
 def _parse_header(data: bytes, name: str) -> PcdHeader:

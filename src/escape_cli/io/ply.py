@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.errors import InputFileError
-from escape_cli.io.common import Fields, format_rows, tokens_to_float
+from escape_cli.io.common import Fields, format_rows, pack_rows, tokens_to_float
 
 MAGIC_LINES = (b"ply\n", b"ply\r\n")
 # The header is a few hundred bytes; give up looking for end_header after this much.
@@ -143,11 +143,7 @@ def serialize_ply(
     dtypes = [coordinate_dtype] * 3 + [np.dtype(np.float32)] * len(fields)
     if not binary:
         return header + format_rows(columns, dtypes)
-    row = np.dtype([(f"c{i}", np.dtype(d).newbyteorder("<")) for i, d in enumerate(dtypes)])
-    table = np.empty(len(points), dtype=row)
-    for i, column in enumerate(columns):
-        table[f"c{i}"] = column
-    return header + table.tobytes()
+    return header + pack_rows(columns, dtypes)
 
 
 def _parse_header(data: bytes, name: str) -> PlyHeader:

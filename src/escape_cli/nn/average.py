@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 
 from escape_cli.errors import EscapeError, OutputExistsError
-from escape_cli.nn.train import load_checkpoint_model, save_checkpoint
+from escape_cli.nn.checkpoint import load_checkpoint_model, save_checkpoint
 
 log = logging.getLogger("escape")
 

@@ -12,11 +12,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import ModelError, OutputExistsError
-from escape_cli.nn.train import load_checkpoint_model
+from escape_cli.nn.checkpoint import load_checkpoint_model
+from escape_cli.nn.parity import PARITY_TOLERANCE, sample_input
 
 MODEL_FORMAT = "escape-model/1"
-PARITY_TOLERANCE = 1e-4
 
 
 class _Exportable(torch.nn.Module):
@@ -26,25 +27,6 @@ class _Exportable(torch.nn.Module):
 
     def forward(self, partial_distances: torch.Tensor):
         return self.net(partial_distances)
-
-
-def sample_input(config, batch: int = 2, seed: int = 0) -> np.ndarray:
-    """A realistic (B, N, K) float32 input: distances of a half-ellipsoid patch to its anchors."""
-    from escape_cli.anchors import select_anchors
-    from escape_cli.encoding import distance_matrix
-    from escape_cli.sampling import prepare_input
-
-    rng = np.random.default_rng(seed)
-    rows = []
-    for _ in range(batch):
-        pts = rng.normal(size=(3000, 3))
-        pts /= np.linalg.norm(pts, axis=1, keepdims=True)
-        pts *= rng.uniform(0.15, 0.45, size=3)
-        pts = pts[pts[:, 0] > -0.05]
-        prepared, unique = prepare_input(pts, config.input_points)
-        anchors = select_anchors(prepared[:unique], config.anchors)
-        rows.append(distance_matrix(prepared, anchors.points))
-    return np.stack(rows).astype(np.float32)
 
 
 def file_sha256(path: Path) -> str:
@@ -131,7 +113,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
         "output_points": queries * config["fold"],
         "input_name": "partial_distances",
         "output_name": "distances",
-        "anchors": state.get("anchors", {"k": config["anchors"], "method": "ball", "radius": 0.075, "knn": 16}),
+        "anchors": state.get("anchors") or AnchorSettings(k=config["anchors"]).to_dict(),
         "merge_observed": bool(options.get("include_observed", True)),
         "normalization": {"method": "centroid + rms radius", "target_radius": state.get("input_radius")},
         "config_name": options.get("config"),

@@ -50,7 +50,7 @@ def reconstruct_differentiable(pred: torch.Tensor, anchors: torch.Tensor, refere
                                damping: float = 1e-2) -> torch.Tensor:
     """Coordinates of predicted distance vectors, with gradients, for an xyz-space loss.
 
-    The points are solved by the product's LM (`escape_cli.reconstruction.reconstruct`,
+    The points are solved by the product's LM (`escape_cli.core.reconstruction.reconstruct`,
     no gradient); one damped Gauss-Newton step taken from that solution in torch then
     carries the gradient. Its value stays the LM solution (the step is ~0 at an optimum)
     and its derivative is the implicit one, d x / d d = (J^T J + lambda I)^-1 J^T,
@@ -59,7 +59,7 @@ def reconstruct_differentiable(pred: torch.Tensor, anchors: torch.Tensor, refere
     pred : (B, P, K) distances, anchors : (B, K, 3), references : (B, N, 3) the partials
     -> (B, P, 3)
     """
-    from escape_cli.reconstruction import reconstruct
+    from escape_cli.core.reconstruction import reconstruct
 
     d = pred.detach().cpu().double().numpy()
     a = anchors.detach().cpu().double().numpy()

@@ -17,9 +17,9 @@ import torch
 from escape_cli.errors import ModelError
 from escape_cli.nn.config import ModelConfig
 from escape_cli.nn.model import EscapeNet
+from escape_cli.nn.parity import PARITY_TOLERANCE, sample_input
 
 PREFIX = "net."  # the export wraps the network as `net`
-PARITY_TOLERANCE = 1e-4
 
 
 def state_dict_from_onnx(onnx_path: Path, config: ModelConfig) -> dict[str, torch.Tensor]:
@@ -91,7 +91,6 @@ def checkpoint_from_onnx(onnx_path: Path) -> tuple[EscapeNet, dict]:
     import onnxruntime as ort
 
     from escape_cli.inference import read_metadata
-    from escape_cli.nn.export import sample_input
 
     onnx_path = Path(onnx_path)
     meta = read_metadata(onnx_path)

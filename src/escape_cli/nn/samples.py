@@ -15,17 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+from escape_cli.core.settings import AnchorSettings
+
 log = logging.getLogger("escape")
-
-
-@dataclass(frozen=True)
-class AnchorSettings:
-    """How anchors are chosen; recorded in the model metadata so inference matches training."""
-
-    k: int = 8
-    method: str = "ball"
-    radius: float = 0.075
-    knn: int = 16
 
 
 @dataclass
@@ -57,14 +49,14 @@ class PreparedSplit:
 
 
 def _prepare_one(args) -> tuple[np.ndarray, np.ndarray, int]:
-    from escape_cli.anchors import select_anchors
+    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.sampling import prepare_input
     from escape_cli.data.pcn import read_pcd
-    from escape_cli.sampling import prepare_input
 
     partial_path, input_points, settings = args
     partial = read_pcd(partial_path).astype(np.float64)
     prepared, unique = prepare_input(partial, input_points)
-    anchors = select_anchors(prepared[:unique], settings.k, settings.method, settings.radius, settings.knn)
+    anchors = select_anchors(prepared[:unique], **settings.to_dict())
     return prepared.astype(np.float32), anchors.points.astype(np.float32), unique
 
 

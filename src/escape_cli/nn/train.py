@@ -15,9 +15,11 @@ import torch
 
 from escape_cli.errors import EscapeError
 from escape_cli.nn.config import ModelConfig, get_preset
+from escape_cli.nn.checkpoint import load_checkpoint_model, save_checkpoint
 from escape_cli.nn.loss import chamfer_l1, reconstruct_differentiable
 from escape_cli.nn.model import EscapeNet, count_parameters
-from escape_cli.nn.samples import AnchorSettings, PreparedSplit, prepare_split
+from escape_cli.core.settings import AnchorSettings
+from escape_cli.nn.samples import PreparedSplit, prepare_split
 
 log = logging.getLogger("escape")
 
@@ -61,7 +63,7 @@ class TrainOptions:
     def from_dict(cls, raw: dict) -> "TrainOptions":
         """The options saved in a checkpoint (`asdict` form) back as a `TrainOptions`."""
         values = {key: value for key, value in raw.items() if key in cls.__dataclass_fields__}
-        values["anchors"] = AnchorSettings(**values.get("anchors", {}))
+        values["anchors"] = AnchorSettings.from_dict(values.get("anchors"))
         if values.get("categories"):
             values["categories"] = tuple(values["categories"])
         return cls(**values)
@@ -78,13 +80,6 @@ def validation_split(options: TrainOptions, input_points: int) -> PreparedSplit:
         Path(options.data), "val", input_points, options.anchors, Path(options.out) / "cache",
         categories=options.categories, views="first", limit=options.val_limit, workers=options.workers,
     )
-
-
-def save_checkpoint(state: dict, path: Path) -> None:
-    """torch.save to a hidden temporary beside PATH, then rename: a reader never sees half a file."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(state, tmp)
-    tmp.replace(path)
 
 
 def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device):
@@ -135,7 +130,7 @@ class Trainer:
 
     def _median_input_radius(self, count: int = 512) -> float:
         """Median radius statistic of training partials: the scale `--normalize auto` maps scans to."""
-        from escape_cli.normalize import cloud_radius
+        from escape_cli.core.normalize import cloud_radius
 
         data = self.train_data
         rows = np.linspace(0, len(data) - 1, min(count, len(data))).astype(int)
@@ -303,8 +298,8 @@ def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: t
 
     The same ground-truth subsets every call (fixed seed), so numbers compare across steps and runs.
     """
-    from escape_cli.metrics import chamfer_l1 as xyz_chamfer_l1
-    from escape_cli.reconstruction import reconstruct
+    from escape_cli.core.metrics import chamfer_l1 as xyz_chamfer_l1
+    from escape_cli.core.reconstruction import reconstruct
 
     model.eval()
     rng = np.random.default_rng(12345)
@@ -333,25 +328,3 @@ def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: t
         "val_xyz_cd_l1_x1000": 1000 * float(np.mean(xyz)) if xyz else float("nan"),
         "val_input_cd_l1_x1000": 1000 * float(np.mean(baseline)) if baseline else float("nan"),
     }
-
-
-def load_checkpoint_model(path: Path) -> tuple[EscapeNet, dict]:
-    """Rebuild the network of a checkpoint in eval mode; returns (model, checkpoint dict).
-
-    An exported `.onnx` (with its metadata beside it) works too: its weights are recovered
-    from the graph, so a shipped model can be fine-tuned with `escape train --init`.
-    """
-    if Path(path).suffix.lower() == ".onnx":
-        from escape_cli.nn.onnx_weights import checkpoint_from_onnx
-
-        return checkpoint_from_onnx(Path(path))
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        model = EscapeNet(ModelConfig.from_dict(state["config"]))
-        model.load_state_dict(state["model"])
-    except FileNotFoundError:
-        raise EscapeError(f"checkpoint {path} does not exist") from None
-    except Exception as err:  # torch raises many kinds for a bad file
-        raise EscapeError(f"cannot load checkpoint {path}: {err}") from None
-    model.eval()
-    return model, state

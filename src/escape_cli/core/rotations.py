@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from escape_cli.errors import EscapeError
+from escape_cli.core.checks import as_vector
+from escape_cli.core.params import as_number
+from escape_cli.errors import PointCloudError
 
 __all__ = [
     "as_generator",
@@ -78,15 +80,11 @@ def rotation_about_axis(axis, angle: float) -> np.ndarray:
     -------
     rotation : (3, 3) float64
     """
-    u = np.asarray(axis, dtype=np.float64)
-    if u.shape != (3,) or not np.all(np.isfinite(u)):
-        raise EscapeError(f"rotation axis must be 3 finite numbers, got shape {u.shape}")
+    u = as_vector(axis, "the rotation axis", 3)
     n = np.linalg.norm(u)
     if n == 0.0:
-        raise EscapeError("rotation axis must be non-zero")
-    angle = float(angle)
-    if not np.isfinite(angle):
-        raise EscapeError(f"rotation angle must be finite, got {angle}")
+        raise PointCloudError("the rotation axis must be non-zero")
+    angle = as_number(angle, "the rotation angle")
     ux, uy, uz = u / n
     k = np.array([[0.0, -uz, uy], [uz, 0.0, -ux], [-uy, ux, 0.0]])  # cross-product matrix
     return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)

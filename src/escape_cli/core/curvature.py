@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from escape_cli.core.checks import as_points
+from escape_cli.core.params import as_count
+
 # Neighbours whose distance is within this relative tolerance of the k-th one are all
 # kept, so that exact ties (grid-like scans) cannot change the neighbourhood under rotation.
 NEIGHBOUR_TIE_RTOL = 1e-7
@@ -24,8 +27,9 @@ def tie_stable_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     """
     from scipy.spatial import cKDTree
 
+    points = as_points(points, "points", min_points=1)
     n = len(points)
-    k = min(k, n)
+    k = min(as_count(k, "k (neighbours)", minimum=1), n)
     extra = min(n, k + 8)
     dist, idx = cKDTree(points).query(points, k=extra)  # (N, L)
     dist = dist.reshape(n, extra)
@@ -52,7 +56,8 @@ def surface_variation(points, k: int = 16) -> np.ndarray:
     -------
     curvature : (N,) float64 in [0, 1/3].
     """
-    pts = np.asarray(points, dtype=np.float64)
+    pts = as_points(points, "points", min_points=1)
+    k = as_count(k, "k (neighbours)", minimum=1)
     idx, mask = tie_stable_neighbours(pts, k)
     weights = mask / mask.sum(axis=1, keepdims=True)  # (N, L)
     neigh = pts[idx]  # (N, L, 3)

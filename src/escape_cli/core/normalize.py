@@ -13,7 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from escape_cli.errors import DegenerateGeometryError, EscapeError, PointCloudError
+from escape_cli.core.checks import as_points, as_vector
+from escape_cli.core.params import as_number
+from escape_cli.errors import DegenerateGeometryError, EscapeError
 
 __all__ = [
     "Normalization",
@@ -25,29 +27,14 @@ __all__ = [
 ]
 
 
-def _as_points(points, name: str = "points") -> np.ndarray:
-    arr = np.asarray(points, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise PointCloudError(f"{name} must have shape (N, 3), got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
-    return arr
-
-
 def _as_vector3(value, name: str) -> np.ndarray:
-    vec = np.asarray(value, dtype=np.float64).reshape(-1)
-    if vec.shape != (3,) or not np.all(np.isfinite(vec)):
-        raise EscapeError(f"{name} must be 3 finite numbers, got {np.shape(value)}")
-    vec = vec.copy()
+    vec = as_vector(value, name, 3).copy()
     vec.setflags(write=False)
     return vec
 
 
 def _as_scale(value, name: str = "scale") -> float:
-    s = float(value)
-    if not np.isfinite(s) or s <= 0.0:
-        raise EscapeError(f"{name} must be a positive finite number, got {value}")
-    return s
+    return as_number(value, name, above=0.0)
 
 
 # ------------------------------------------------------------ centroid + radius
@@ -79,11 +66,11 @@ class Normalization:
 
     def apply(self, points) -> np.ndarray:
         """(N, 3) points in the input frame -> (N, 3) normalised points."""
-        return (_as_points(points) - self.center) / self.scale
+        return (as_points(points, "points", min_points=0) - self.center) / self.scale
 
     def invert(self, points) -> np.ndarray:
         """(N, 3) normalised points -> (N, 3) points in the input frame."""
-        return _as_points(points) * self.scale + self.center
+        return as_points(points, "points", min_points=0) * self.scale + self.center
 
     def to_dict(self) -> dict:
         """JSON-ready ``{"center": [x, y, z], "scale": s}``."""
@@ -119,9 +106,7 @@ def cloud_radius(points, quantile: float | None = None) -> float:
     float
         Raises DegenerateGeometryError when the radius is zero (all points equal).
     """
-    pts = _as_points(points)
-    if len(pts) == 0:
-        raise PointCloudError("cannot measure the radius of an empty cloud (shape (0, 3))")
+    pts = as_points(points, "points", min_points=1)
     centred = pts - pts.mean(axis=0)  # (N, 3)
     dist = np.sqrt((centred * centred).sum(axis=1))  # (N,)
     if quantile is None:
@@ -141,7 +126,7 @@ def cloud_radius(points, quantile: float | None = None) -> float:
 
 def cloud_radius_naive(points) -> float:
     """Reference for `cloud_radius` (RMS): a plain loop over the points."""
-    pts = [tuple(map(float, p)) for p in np.asarray(points, dtype=np.float64)]
+    pts = [tuple(map(float, p)) for p in as_points(points, "points", min_points=1)]
     n = len(pts)
     c = [sum(p[k] for p in pts) / n for k in range(3)]
     return float(np.sqrt(sum(sum((p[k] - c[k]) ** 2 for k in range(3)) for p in pts) / n))
@@ -170,7 +155,7 @@ def fit_normalization(points, target_radius: float, quantile: float | None = Non
     Normalization
     """
     target = _as_scale(target_radius, "target_radius")
-    pts = _as_points(points)
+    pts = as_points(points, "points", min_points=0)
     radius = cloud_radius(pts, quantile=quantile)
     return Normalization(pts.mean(axis=0), radius / target)
 
@@ -216,11 +201,11 @@ class BoxNormalization:
 
     def apply(self, points) -> np.ndarray:
         """(N, 3) points in the LiDAR frame -> (N, 3) points in the box frame."""
-        return ((_as_points(points) - self.center) @ self.rotation.T) / self.scale  # (N, 3)
+        return ((as_points(points, "points", min_points=0) - self.center) @ self.rotation.T) / self.scale  # (N, 3)
 
     def invert(self, points) -> np.ndarray:
         """(N, 3) points in the box frame -> (N, 3) points in the LiDAR frame."""
-        return (_as_points(points) * self.scale) @ self.rotation + self.center  # (N, 3)
+        return (as_points(points, "points", min_points=0) * self.scale) @ self.rotation + self.center  # (N, 3)
 
     def to_dict(self) -> dict:
         """JSON-ready ``{"rotation": 3x3 list, "center": [x, y, z], "scale": s}``."""

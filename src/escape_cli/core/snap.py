@@ -17,6 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from escape_cli.core.checks import as_points
+from escape_cli.core.params import as_count, as_number
+
 __all__ = ["SNAP_RADIUS", "SNAP_NEIGHBOURS", "Snap", "check_snap_radius", "snap_to_scan"]
 
 SNAP_RADIUS = 0.05  # in the network's units (PCN scale: objects span about 1)
@@ -27,10 +30,8 @@ MIN_SCAN_POINTS = 3
 
 
 def check_snap_radius(radius) -> float:
-    """The radius as a float; ValueError unless it is finite and >= 0."""
-    if not (np.isfinite(radius) and radius >= 0):
-        raise ValueError(f"snap_radius must be a finite number >= 0, got {radius}")
-    return float(radius)
+    """The radius as a float; ParameterError unless it is finite and >= 0."""
+    return as_number(radius, "snap_radius", minimum=0.0)
 
 
 @dataclass(frozen=True)
@@ -63,13 +64,10 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     """
     from scipy.spatial import cKDTree
 
-    pts = np.asarray(points, dtype=np.float64)
-    ref = np.asarray(scan, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3 or ref.ndim != 2 or ref.shape[1] != 3:
-        raise ValueError(f"points and scan must have shape (M, 3) and (N, 3), got {pts.shape} and {ref.shape}")
+    pts = as_points(points, "points", min_points=0)
+    ref = as_points(scan, "scan", min_points=0)
     radius = check_snap_radius(radius)
-    if neighbours < MIN_SCAN_POINTS:
-        raise ValueError(f"a plane needs at least {MIN_SCAN_POINTS} neighbours, got {neighbours}")
+    neighbours = as_count(neighbours, "neighbours (scan points per plane)", minimum=MIN_SCAN_POINTS)
     unmoved = Snap(points=pts.copy(), moved=np.zeros(len(pts), dtype=bool))
     if radius == 0 or len(pts) == 0 or len(ref) < MIN_SCAN_POINTS:
         return unmoved

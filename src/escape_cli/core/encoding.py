@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from escape_cli.errors import PointCloudError
+from escape_cli.core.checks import as_points
 
 
 def distance_matrix(points, anchors) -> np.ndarray:
@@ -19,10 +19,6 @@ def distance_matrix(points, anchors) -> np.ndarray:
     -------
     distances : (N, K) float64
     """
-    pts = np.asarray(points, dtype=np.float64)
-    anc = np.asarray(anchors, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise PointCloudError(f"points must have shape (N, 3), got {pts.shape}")
-    if anc.ndim != 2 or anc.shape[1] != 3 or len(anc) == 0:
-        raise PointCloudError(f"anchors must have shape (K, 3) with K >= 1, got {anc.shape}")
+    pts = as_points(points, "points", min_points=0)
+    anc = as_points(anchors, "anchors", min_points=1)
     return np.linalg.norm(pts[:, None, :] - anc[None, :, :], axis=2)  # (N, K)

@@ -9,22 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from escape_cli.core.checks import as_points
+from escape_cli.core.params import as_count
 from escape_cli.errors import DegenerateGeometryError, PointCloudError
 
 # Values within this relative tolerance of the best are treated as tied.
 TIE_RTOL = 1e-9
-
-
-def as_points(points, name: str = "points", min_points: int = 1) -> np.ndarray:
-    """Coerce to a finite `(N, 3) float64` array with at least `min_points` rows."""
-    arr = np.asarray(points, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise PointCloudError(f"{name} must have shape (N, 3), got {arr.shape}")
-    if len(arr) < min_points:
-        raise PointCloudError(f"{name} has {len(arr)} points; at least {min_points} needed")
-    if not np.all(np.isfinite(arr)):
-        raise PointCloudError(f"{name} contains NaN or Inf coordinates")
-    return arr
 
 
 def farthest_from_centroid(points: np.ndarray) -> int:
@@ -34,6 +24,7 @@ def farthest_from_centroid(points: np.ndarray) -> int:
     ----------
     points : (N, 3) float64
     """
+    points = as_points(points, "points", min_points=1)
     radius = np.linalg.norm(points - points.mean(axis=0), axis=1)  # (N,)
     return int(np.flatnonzero(radius >= radius.max() * (1.0 - TIE_RTOL))[0])
 
@@ -76,6 +67,7 @@ def farthest_point_sampling(points, count: int, start: int | None = None) -> np.
 
 def count_distinct(points: np.ndarray, decimals: int = 12) -> int:
     """Number of distinct points (coordinates compared after rounding)."""
+    points = as_points(points, "points", min_points=0)
     return len(np.unique(np.round(points, decimals), axis=0))
 
 
@@ -107,3 +99,25 @@ def prepare_input(points, size: int = 2048) -> tuple[np.ndarray, int]:
     if count < size:
         chosen = chosen[np.arange(size) % count]
     return chosen, count
+
+
+def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
+    """Deterministic rows to turn `count` points into `size`: a seeded subset, or all plus repeats.
+
+    Depends only on the counts, so it commutes with any rotation of the points. The
+    one resampling rule of the package (the network input, PCN-style fixed-size
+    samples, completions).
+
+    Returns
+    -------
+    rows : (size,) int64
+    """
+    count = as_count(count, "count", minimum=1)
+    size = as_count(size, "size", minimum=1)
+    if size == count:
+        return np.arange(count)
+    rng = np.random.default_rng(seed)
+    if size < count:
+        return np.sort(rng.choice(count, size, replace=False))
+    extra = rng.choice(count, size - count, replace=size - count > count)
+    return np.concatenate([np.arange(count), extra])

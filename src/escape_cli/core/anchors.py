@@ -19,18 +19,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from escape_cli.curvature import surface_variation
-from escape_cli.errors import DegenerateGeometryError, PointCloudError
-from escape_cli.sampling import as_points, count_distinct, farthest_point_sampling
+from escape_cli.core.checks import as_points, check_not_collinear
+from escape_cli.core.curvature import surface_variation
+from escape_cli.core.sampling import count_distinct, farthest_point_sampling
+from escape_cli.core.settings import DEFAULTS, METHODS, AnchorSettings
+from escape_cli.errors import DegenerateGeometryError
 
-METHODS = ("ball", "fps", "cluster")
-DEFAULT_K = 8
-DEFAULT_RADIUS = 0.075
-DEFAULT_KNN = 16
+__all__ = ["Anchors", "AnchorSettings", "DEFAULTS", "METHODS", "select_anchors"]
+
 # Curvatures within this absolute tolerance of the best candidate are treated as tied.
 CURVATURE_TIE_ATOL = 1e-6
-# Anchors whose weakest spread is below this share of the strongest are "collinear".
-COLLINEAR_RTOL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -49,10 +47,10 @@ class Anchors:
 
 def select_anchors(
     points,
-    k: int = DEFAULT_K,
-    method: str = "ball",
-    radius: float = DEFAULT_RADIUS,
-    knn: int = DEFAULT_KNN,
+    k: int = DEFAULTS.k,
+    method: str = DEFAULTS.method,
+    radius: float = DEFAULTS.radius,
+    knn: int = DEFAULTS.knn,
 ) -> Anchors:
     """Choose `k` distinct anchor points on a cloud.
 
@@ -68,17 +66,12 @@ def select_anchors(
     -------
     Anchors with indices (K,) and points (K, 3).
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown anchor method {method!r}; choose from {', '.join(METHODS)}")
-    if k < 4:
-        raise PointCloudError(f"at least 4 anchors are needed for 3D reconstruction, got k={k}")
-    if radius <= 0 or knn < 3:
-        raise PointCloudError(f"radius must be > 0 and knn >= 3 (got radius={radius}, knn={knn})")
-    pts = as_points(points, min_points=k)
+    AnchorSettings(k, method, radius, knn)  # checks the parameters
+    pts = as_points(points, "the cloud", min_points=k)
     distinct = count_distinct(pts)
     if distinct < k:
         raise DegenerateGeometryError(f"the cloud has only {distinct} distinct points; {k} anchors need at least {k}")
-    check_not_collinear(pts)
+    check_not_collinear(pts, "the cloud's points")
 
     seeds = farthest_point_sampling(pts, k)  # (K,)
     if method == "fps":
@@ -91,16 +84,6 @@ def select_anchors(
         else:
             chosen = _refine_in_clusters(pts, seeds, curvature, centroid_dist)
     return Anchors(indices=chosen.astype(np.int64), points=pts[chosen].copy())
-
-
-def check_not_collinear(points: np.ndarray) -> None:
-    """Raise DegenerateGeometryError when all points lie on one line (or one point)."""
-    centred = points - points.mean(axis=0)
-    sv = np.linalg.svd(centred, compute_uv=False)  # (3,) descending
-    if sv[0] <= 0:
-        raise DegenerateGeometryError("all points are identical")
-    if sv[1] <= COLLINEAR_RTOL * sv[0]:
-        raise DegenerateGeometryError("all points lie on one line; anchors would be collinear")
 
 
 def _best_candidate(candidates, curvature, seed_point, pts, centroid_dist) -> int:

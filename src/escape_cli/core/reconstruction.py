@@ -49,7 +49,9 @@ from itertools import combinations
 
 import numpy as np
 
-from escape_cli.errors import DegenerateGeometryError, EscapeError, PointCloudError
+from escape_cli.core.checks import as_points, as_rows, check_not_collinear
+from escape_cli.core.params import as_choice, as_count, as_number
+from escape_cli.errors import DegenerateGeometryError, ParameterError, PointCloudError
 
 __all__ = [
     "Reconstruction",
@@ -62,7 +64,6 @@ __all__ = [
     "METHODS",
     "RCOND",
     "PLANAR_RATIO",
-    "COLLINEAR_RATIO",
     "TIE_CHI2",
 ]
 
@@ -70,7 +71,8 @@ METHODS = ("batched", "scipy")
 
 RCOND = 0.02
 """Linear start: singular directions of the centred anchors below this share of the
-largest singular value are dropped (DESIGN.md, Measured lesson 1)."""
+largest singular value are dropped: with noisy distances on nearly coplanar anchors the
+out-of-plane coordinate otherwise explodes."""
 
 PLANAR_RATIO = 0.1
 """Anchors are *near-planar* when s_min / s_max of the centred anchors is below this,
@@ -151,19 +153,17 @@ class Reconstruction:
 
 
 def _as_anchors(anchors) -> np.ndarray:
-    anc = np.asarray(anchors, dtype=np.float64)
-    if anc.ndim != 2 or anc.shape[1] != 3:
-        raise DegenerateGeometryError(f"anchors must have shape (K, 3), got {anc.shape}")
-    return anc
+    return as_points(anchors, "anchors", min_points=0)
 
 
 def check_anchors(anchors) -> None:
     """Raise DegenerateGeometryError unless the anchors can locate points in 3D.
 
-    Rejected: fewer than 4 anchors, non-finite values, fewer than 4 distinct anchors
-    (closer than 1e-9 of their extent count as one), and (nearly) collinear anchors
-    (second singular value of the centred anchors below `COLLINEAR_RATIO` = 1e-3 of the
-    largest). Coplanar anchors are accepted: `reconstruct` handles them (near_planar).
+    Rejected: fewer than 4 anchors, fewer than 4 distinct anchors (closer than 1e-9 of
+    their extent count as one), and (nearly) collinear anchors (the package's one rule,
+    `escape_cli.core.checks.check_not_collinear`). Coplanar anchors are accepted:
+    `reconstruct` handles them (near_planar). Bad arrays (shape, NaN) raise
+    PointCloudError.
 
     Parameters
     ----------
@@ -173,8 +173,6 @@ def check_anchors(anchors) -> None:
     k = anc.shape[0]
     if k < 4:
         raise DegenerateGeometryError(f"need at least 4 anchors to locate points in 3D, got {k}")
-    if not np.all(np.isfinite(anc)):
-        raise DegenerateGeometryError("anchors contain NaN or infinite values")
     centred = anc - anc.mean(axis=0)  # (K, 3)
     extent = float(np.sqrt((centred * centred).sum(axis=1)).max())
     gaps = np.sqrt(((anc[:, None, :] - anc[None, :, :]) ** 2).sum(axis=2))  # (K, K)
@@ -184,31 +182,18 @@ def check_anchors(anchors) -> None:
         raise DegenerateGeometryError(
             f"need at least 4 distinct anchors, got {distinct} distinct among {k}"
         )
-    s = np.linalg.svd(centred, compute_uv=False)  # (3,)
-    if s[1] < COLLINEAR_RATIO * s[0]:
-        raise DegenerateGeometryError(
-            f"anchors are (nearly) collinear: singular values {s[0]:.3g}, {s[1]:.3g}, {s[2]:.3g}"
-        )
+    check_not_collinear(anc, "the anchors")
 
 
 def _as_distances(distances, k: int) -> np.ndarray:
-    dist = np.asarray(distances, dtype=np.float64)
-    if dist.ndim != 2 or dist.shape[1] != k:
+    dist = as_rows(distances, "distances", None, 0, letters="MK")
+    if dist.shape[1] != k:
         raise PointCloudError(f"distances must have shape (M, K={k}) to match the anchors, got {dist.shape}")
-    if not np.all(np.isfinite(dist)):
-        raise PointCloudError("distances contain NaN or infinite values")
     return np.maximum(dist, 0.0)  # (M, K): a network may predict slightly negative values
 
 
 def _as_reference(points) -> np.ndarray | None:
-    if points is None:
-        return None
-    ref = np.asarray(points, dtype=np.float64)
-    if ref.ndim != 2 or ref.shape[1] != 3 or ref.shape[0] == 0:
-        raise PointCloudError(f"reference_points must have shape (N, 3) with N >= 1, got {ref.shape}")
-    if not np.all(np.isfinite(ref)):
-        raise PointCloudError("reference_points contain NaN or infinite coordinates")
-    return ref
+    return None if points is None else as_points(points, "reference_points", min_points=1)
 
 
 # ------------------------------------------------------------------- anchor frame
@@ -273,8 +258,9 @@ def linear_multilateration(distances, anchors, rel_cutoff: float = RCOND) -> np.
 
 
 def _linear_centred(distances: np.ndarray, frame: _Frame, rel_cutoff: float) -> np.ndarray:
-    if not 0.0 <= rel_cutoff < 1.0:
-        raise EscapeError(f"rel_cutoff must be in [0, 1), got {rel_cutoff}")
+    rel_cutoff = as_number(rel_cutoff, "rel_cutoff", minimum=0.0)
+    if rel_cutoff >= 1.0:
+        raise ParameterError(f"rel_cutoff must be below 1, got {rel_cutoff!r}")
     keep = frame.s >= rel_cutoff * frame.s[0]  # (3,)
     pinv = (frame.vt[keep].T / frame.s[keep]) @ frame.u[:, keep].T  # (3, K)
     return _linear_rhs(distances, frame.centred) @ pinv.T  # (M, 3)
@@ -365,7 +351,7 @@ def rms_residuals(points, distances, anchors) -> np.ndarray:
     residuals : (M,) float64
     """
     anc = _as_anchors(anchors)
-    pts = np.asarray(points, dtype=np.float64)
+    pts = as_points(points, "points", min_points=0)
     dist = _as_distances(distances, anc.shape[0])
     if pts.shape != (len(dist), 3):
         raise PointCloudError(f"points must have shape ({len(dist)}, 3), got {pts.shape}")
@@ -433,7 +419,7 @@ def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, new
     solution, also close to an anchor or for points near a flat anchor set, where
     Gauss-Newton crawls), else the Gauss-Newton matrix J^T J = sum_j u_j u_j^T. The
     step is cut to the anchors' RMS radius and kept only if the point's cost drops;
-    lambda shrinks 3x after a kept step and grows 4x after a rejected one.
+    lambda shrinks 10x after a kept step and grows 4x after a rejected one.
     """
     a = frame.centred  # (K, 3)
     q = q0.copy()  # (P, 3)
@@ -578,10 +564,8 @@ def reconstruct(
     noise variance behind the side choice (`TIE_CHI2`) is the median over the call's
     points, so a borderline point may choose differently when solved in another batch.
     """
-    if method not in METHODS:
-        raise EscapeError(f"unknown reconstruction method {method!r}; expected one of {METHODS}")
-    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-        raise EscapeError(f"max_iter must be a positive integer, got {max_iter!r}")
+    as_choice(method, "the reconstruction method", METHODS)
+    max_iter = as_count(max_iter, "max_iter", minimum=1)
     anc = _as_anchors(anchors)
     check_anchors(anc)
     dist = _as_distances(distances, anc.shape[0])  # (M, K)

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from escape_cli.errors import EscapeError, PointCloudError
+from escape_cli.core.checks import as_points
+from escape_cli.core.params import as_number
 
 __all__ = [
     "nearest_distances",
@@ -36,26 +37,11 @@ _NAIVE_CHUNK_ELEMENTS = 1 << 21
 # --------------------------------------------------------------------------- checks
 
 
-def _as_cloud(points, name: str) -> np.ndarray:
-    """Coerce to a non-empty, finite (n, 3) float64 array or raise PointCloudError."""
-    arr = np.asarray(points, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3:
-        raise PointCloudError(f"{name} must have shape (n, 3), got {arr.shape}")
-    if arr.shape[0] == 0:
-        raise PointCloudError(f"{name} is empty (shape {arr.shape})")
-    if not np.all(np.isfinite(arr)):
-        raise PointCloudError(f"{name} contains NaN or infinite coordinates")
-    return arr
-
-
 def _check_threshold(threshold: float) -> float:
-    t = float(threshold)
-    if not np.isfinite(t) or t <= 0.0:
-        raise EscapeError(f"F-Score threshold must be a positive number, got {threshold}")
-    return t
+    return as_number(threshold, "the F-Score threshold", above=0.0)
 
 
-# ----------------------------------------------------------------- nearest distances
+# ------------------------------------------------------------------------ metrics
 
 
 def nearest_distances(source, target) -> np.ndarray:
@@ -71,8 +57,8 @@ def nearest_distances(source, target) -> np.ndarray:
     distances : (S,) float64
         min_y ||x - y|| for each x in source, y in target (unsquared).
     """
-    src = _as_cloud(source, "source")
-    tgt = _as_cloud(target, "target")
+    src = as_points(source, "source")
+    tgt = as_points(target, "target")
     return _query(src, tgt)
 
 
@@ -83,8 +69,8 @@ def _query(src: np.ndarray, tgt: np.ndarray) -> np.ndarray:
 
 def nearest_distances_naive(source, target) -> np.ndarray:
     """Brute-force `nearest_distances`: all pairwise differences, chunked over source."""
-    src = _as_cloud(source, "source")
-    tgt = _as_cloud(target, "target")
+    src = as_points(source, "source")
+    tgt = as_points(target, "target")
     chunk = max(1, _NAIVE_CHUNK_ELEMENTS // len(tgt))
     out = np.empty(len(src), dtype=np.float64)
     for start in range(0, len(src), chunk):
@@ -114,8 +100,8 @@ def _fscore(d_pg: np.ndarray, d_gp: np.ndarray, threshold: float) -> float:
 
 
 def _both_ways(pred, gt, naive: bool) -> tuple[np.ndarray, np.ndarray]:
-    p = _as_cloud(pred, "pred")
-    g = _as_cloud(gt, "gt")
+    p = as_points(pred, "pred")
+    g = as_points(gt, "gt")
     if naive:
         return nearest_distances_naive(p, g), nearest_distances_naive(g, p)
     return _query(p, g), _query(g, p)  # (M,), (G,)
@@ -214,8 +200,8 @@ def fidelity(input_points, output_points) -> float:
     -------
     float
     """
-    src = _as_cloud(input_points, "input")
-    out = _as_cloud(output_points, "output")
+    src = as_points(input_points, "input")
+    out = as_points(output_points, "output")
     return float(_query(src, out).mean())
 
 
