@@ -36,7 +36,7 @@ def realdata_clouds() -> list:
 
 @pytest.fixture(scope="session")
 def tiny_model(tmp_path_factory) -> Path:
-    """An untrained tiny network exported to ONNX (256 input points, 256 outputs)."""
+    """An untrained tiny network exported to ONNX (256 input points, 1024 outputs)."""
     pytest.importorskip("torch")
     from escape_cli.nn.export import export_onnx
     from tests_support import write_tiny_checkpoint

@@ -21,13 +21,13 @@ def test_export_matches_torch(tmp_path):
     meta = export_onnx(tmp_path / "tiny.pt", tmp_path / "tiny.onnx")
     assert meta["onnx_parity_max_abs"] <= 1e-4
     saved = json.loads((tmp_path / "tiny.json").read_text())
-    assert saved["k"] == 8 and saved["input_points"] == 256 and saved["output_points"] == 256
+    assert saved["k"] == 8 and saved["input_points"] == 256 and saved["output_points"] == 1024
     model = CompletionModel(tmp_path / "tiny.onnx")
     x = sample_input(net.config, batch=3, seed=5)  # a batch size not used in the export
     with torch.no_grad():
         want = net(torch.from_numpy(x))[0].numpy()
     got = model.predict(x)
-    assert got.shape == (3, 256, 8)
+    assert got.shape == (3, 1024, 8)
     assert np.abs(got - want).max() <= 1e-4
 
 

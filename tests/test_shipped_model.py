@@ -38,7 +38,10 @@ def test_completes_every_real_scan(path, realdata_dir, tmp_path):
     res = run_escape("complete", path, "-o", out, "--residuals")
     assert res.exit_code == 0, res.stderr
     points = read_points(out)
-    assert points.shape == (16384, 3) and np.all(np.isfinite(points))
+    summary = json.loads(res.stderr_lines[-1])
+    assert points.shape == (summary["points"], 3) and np.all(np.isfinite(points))
+    assert len(points) == min(16384, summary["available_points"])
+    assert len(np.unique(points, axis=0)) == len(points), "no repeated points"
     cloud = read_points(path)
     # the output stays in the input's frame and units: same place, comparable size
     extent = np.ptp(cloud, axis=0).max()

@@ -39,7 +39,8 @@ def test_training_writes_checkpoints_and_curve(tiny_tree, tmp_path):
     assert len(rows) == 3  # one validation per epoch
     assert {"val_dmcd_x1000", "val_xyz_cd_l1_x1000", "train_loss_x1000"} <= set(rows[0])
     assert metrics["val_xyz_cd_l1_x1000"] > 0
-    assert trainer.input_radius > 0
+    assert trainer.input_radius is None  # the partial frame needs no dataset radius
+    assert json.loads((tmp_path / "run" / "options.json").read_text())["frame"] == {"rows": 256, "radius": 0.28}
 
 
 def test_resume_continues_where_it_stopped(tiny_tree, tmp_path):
@@ -66,7 +67,8 @@ def test_train_and_export_through_the_cli(tiny_tree, tmp_path):
     res = runner.invoke(app, ["export-onnx", str(out / "best.pt"), "-o", str(tmp_path / "m.onnx")])
     assert res.exit_code == 0, res.output
     meta = json.loads((tmp_path / "m.json").read_text())
-    assert meta["training"]["train_objects"] == 4 and meta["normalization"]["target_radius"] > 0
+    assert meta["training"]["train_objects"] == 4
+    assert meta["frame"] == {"kind": "partial", "rows": 256, "radius": 0.28}
     assert meta["validation"]["val_xyz_cd_l1_x1000"] > 0
 
 

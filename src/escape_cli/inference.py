@@ -58,8 +58,22 @@ class CompletionModel:
 
     @property
     def target_radius(self) -> float | None:
-        value = self.meta.get("normalization", {}).get("target_radius")
+        """Absolute-frame models: the training partials' median radius (`--normalize auto`)."""
+        value = (self.meta.get("normalization") or {}).get("target_radius")
         return None if value is None else float(value)
+
+    @property
+    def frame(self):
+        """The `PartialFrame` the model works in, or None for a model trained in absolute PCN units."""
+        from escape_cli.core.normalize import PartialFrame
+
+        frame = self.meta.get("frame") or {}
+        if frame.get("kind") != "partial":
+            return None
+        try:
+            return PartialFrame(int(frame["rows"]), float(frame["radius"]))
+        except (KeyError, TypeError, ValueError):
+            raise ModelError(f"{self.path.with_suffix('.json')}: bad 'frame' record {frame}") from None
 
     @property
     def anchors(self) -> AnchorSettings:

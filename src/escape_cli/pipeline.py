@@ -7,14 +7,17 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from escape_cli.errors import PointCloudError
 from escape_cli.core.checks import as_points
 from escape_cli.core.params import as_choice, as_count
 from escape_cli.core.sampling import count_distinct, resample_rows
+from escape_cli.errors import ParameterError, PointCloudError
+
+log = logging.getLogger("escape")
 
 MIN_INPUT_POINTS = 16
 NORMALIZE_MODES = ("auto", "none")
@@ -35,6 +38,8 @@ class Completion:
     anchor_indices : (K,) int64, rows of the network input (the FPS-ordered subsample).
     near_planar : bool, the anchors were nearly coplanar (less reliable depth).
     normalization : the transform applied before the network (`invert` maps back).
+    available : int, the distinct points the output was drawn from (predicted, plus the
+        observed ones with `keep_input`); the output has min(output_points, available).
     """
 
     points: np.ndarray
@@ -45,11 +50,13 @@ class Completion:
     anchor_indices: np.ndarray
     near_planar: bool
     normalization: object
+    available: int
 
     def summary(self) -> dict:
         predicted = ~self.is_observed
         return {
             "points": int(len(self.points)),
+            "available_points": int(self.available),
             "observed": int(self.is_observed.sum()),
             "snapped": int(self.is_snapped.sum()),
             "near_planar_anchors": bool(self.near_planar),
@@ -93,9 +100,7 @@ def complete(
     from escape_cli.core.anchors import select_anchors
     from escape_cli.core.encoding import distance_matrix
     from escape_cli.inference import CompletionModel, load_model
-    from escape_cli.core.normalize import Normalization, fit_normalization
     from escape_cli.core.reconstruction import reconstruct
-    from escape_cli.core.sampling import prepare_input
     from escape_cli.core.snap import SNAP_RADIUS, check_snap_radius, snap_to_scan
 
     as_choice(normalize, "normalize", NORMALIZE_MODES)
@@ -107,27 +112,30 @@ def complete(
         raise PointCloudError(f"the input has {distinct} distinct points; at least {MIN_INPUT_POINTS} are needed to complete it")
     net = model if isinstance(model, CompletionModel) else load_model(None if model is None else str(model), threads)
 
-    if normalize == "auto" and net.target_radius:
-        norm = fit_normalization(pts, net.target_radius)
-    else:
-        norm = Normalization.identity()
-    prepared, unique = prepare_input(norm.apply(pts), net.input_points)  # (N', 3)
-    anchors = select_anchors(prepared[:unique], **net.anchors.to_dict())  # (K, 3)
-    features = distance_matrix(prepared, anchors.points)  # (N', K)
+    net_in = _network_input(pts, net, normalize)
+    observed_points = net_in.observed  # (U, 3) in the network's frame
+    anchors = select_anchors(observed_points, **net.anchors.to_dict())  # (K, 3)
+    features = distance_matrix(net_in.rows, anchors.points)  # (N', K)
     predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
-    rec = reconstruct(predicted, anchors.points, method=solver, reference_points=prepared[:unique])
+    if net_in.unique < len(net_in.rows):  # repeated input rows seed identical queries: drop their copies
+        predicted = predicted[np.sort(np.unique(predicted, axis=0, return_index=True)[1])]
+    rec = reconstruct(predicted, anchors.points, method=solver, reference_points=observed_points)
 
-    snap = snap_to_scan(rec.points, prepared[:unique], snap_radius)
+    snap = snap_to_scan(rec.points, observed_points, snap_radius)
     out = snap.points  # (M', 3)
     residuals = rec.residuals  # (M',)
     observed = np.zeros(len(out), dtype=bool)
     snapped = snap.moved
     if keep_input:
-        out = np.concatenate([out, prepared[:unique]])
+        unique = len(observed_points)
+        out = np.concatenate([out, observed_points])
         residuals = np.concatenate([residuals, np.zeros(unique)])
         observed = np.concatenate([observed, np.ones(unique, dtype=bool)])
         snapped = np.concatenate([snapped, np.zeros(unique, dtype=bool)])
-    rows = resample_rows(len(out), output_points)
+    if output_points > len(out):
+        log.warning("the completion has %d distinct points, fewer than the %d asked for; all are returned", len(out), output_points)
+    rows = resample_rows(len(out), min(output_points, len(out)))  # a subset: never a repeated point
+    norm = net_in.normalization
     return Completion(
         points=norm.invert(out[rows]),
         residuals=residuals[rows] * norm.scale,
@@ -137,4 +145,22 @@ def complete(
         anchor_indices=anchors.indices,
         near_planar=bool(rec.near_planar),
         normalization=norm,
+        available=len(out),
     )
+
+
+def _network_input(pts: np.ndarray, net, normalize: str):
+    """The network input of a scan (N, 3) in the model's frame (see `escape_cli.core.normalize`)."""
+    from escape_cli.core.normalize import NetworkInput, Normalization, fit_normalization, network_input
+
+    frame = net.frame
+    if frame is not None:
+        if normalize == "none":
+            raise ParameterError(
+                f"{net.path.name} works in each scan's own frame; --normalize none is only for models trained in absolute units"
+            )
+        return network_input(pts, net.input_points, frame)
+    # a model trained in absolute PCN units: the older radius heuristic, or the units as given
+    norm = fit_normalization(pts, net.target_radius) if normalize == "auto" and net.target_radius else Normalization.identity()
+    plain = network_input(norm.apply(pts), net.input_points, None)
+    return NetworkInput(plain.rows, plain.unique, norm)

@@ -1,8 +1,11 @@
-"""Normalisations with exact inverses: centroid + radius (any scan) and KITTI box frames.
+"""Normalisations with exact inverses: the scan's own frame, centroid + radius, and KITTI boxes.
 
 The network only knows the scale it was trained at (distances are rotation- and
-translation-invariant, not scale-invariant). `fit_normalization` brings a real scan
-(metres, anywhere) to that scale with a rotation-invariant centre and radius;
+translation-invariant, not scale-invariant). `PartialFrame` is the frame the current
+models are trained and run in: it is computed from the partial alone, so a scan in
+millimetres, metres or PCN units reaches the network identically. `fit_normalization`
+is the older heuristic (centroid + RMS radius of all points, scaled to the median
+training partial) kept for models trained in absolute PCN units;
 `box_normalization` is the PCN/PoinTr convention for KITTI cars, which uses the
 detector's box instead.
 """
@@ -14,10 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.core.checks import as_points, as_vector
-from escape_cli.core.params import as_number
+from escape_cli.core.params import as_count, as_number
 from escape_cli.errors import DegenerateGeometryError, EscapeError
 
 __all__ = [
+    "NetworkInput",
+    "PartialFrame",
+    "network_input",
     "Normalization",
     "cloud_radius",
     "cloud_radius_naive",
@@ -158,6 +164,112 @@ def fit_normalization(points, target_radius: float, quantile: float | None = Non
     pts = as_points(points, "points", min_points=0)
     radius = cloud_radius(pts, quantile=quantile)
     return Normalization(pts.mean(axis=0), radius / target)
+
+
+# ------------------------------------------------------------ the scan's own frame
+
+
+@dataclass(frozen=True)
+class PartialFrame:
+    """The frame a partial scan is completed in, computed from the partial alone.
+
+    The scan's first `rows` farthest-point rows (the network input's coarse cover of the
+    visible surface, so dense near surfaces do not weigh more) are centred on their
+    centroid and scaled to an RMS radius of `radius`. Among the statistics measured on
+    the training partials this one predicted the complete shape's size best (std of
+    log(complete radius / statistic) 0.099, against 0.115 for the RMS radius of all
+    points and 0.178 for absolute PCN units) while moving by only 2.6% when 1% of the
+    points are outliers (64 rows: 0.093 but 8%).
+
+    Attributes
+    ----------
+    rows : int
+        Farthest-point rows the statistic is taken on.
+    radius : float
+        Their RMS radius in the frame (PCN-like units: about the training partials').
+    """
+
+    rows: int = 256
+    radius: float = 0.28
+
+    def __post_init__(self) -> None:
+        as_count(self.rows, "frame rows", minimum=4)
+        _as_scale(self.radius, "frame radius")
+
+    def fit(self, ordered) -> "Normalization":
+        """The normalisation of a cloud given in farthest-point order.
+
+        Parameters
+        ----------
+        ordered : (N, 3) float
+            Distinct points, farthest-point ordered (the leading rows of `prepare_input`).
+        """
+        head = as_points(ordered, "the ordered cloud", min_points=1)[: self.rows]  # (R, 3)
+        centre = head.mean(axis=0)
+        return Normalization(centre, cloud_radius(head) / self.radius)
+
+    def to_dict(self) -> dict:
+        return {"kind": "partial", "rows": int(self.rows), "radius": float(self.radius)}
+
+
+@dataclass(frozen=True, eq=False)
+class NetworkInput:
+    """A scan made ready for the network (see `network_input`).
+
+    Attributes
+    ----------
+    rows : (S, 3) float64
+        The farthest-point-ordered input in the network's frame (short scans repeated).
+    unique : int
+        Leading rows of `rows` that are distinct points.
+    normalization : Normalization
+        Maps the scan into the network's frame; `invert` maps results back.
+    """
+
+    rows: np.ndarray
+    unique: int
+    normalization: "Normalization"
+
+    @property
+    def observed(self) -> np.ndarray:
+        """(unique, 3) the distinct observed points, in the network's frame."""
+        return self.rows[: self.unique]
+
+
+def network_input(points, size: int, frame: PartialFrame | None = PartialFrame()) -> NetworkInput:
+    """The farthest-point-ordered network input of a scan, in the scan's own frame.
+
+    Used by training (`escape_cli.nn.samples`) and by `complete`, so both feed the
+    network the same rows. The scan is first centred on its mean in float64 (scans in
+    UTM metres keep their precision), then ordered by farthest point sampling, then
+    mapped by `frame.fit` of those rows; ``frame=None`` keeps the units as they are
+    (models trained in absolute PCN units), centred or not alike for the network.
+
+    The result is similarity-equivariant: for ``s R x + t`` the rows are ``s R rows + t``
+    before normalisation, and identical after it (up to rounding).
+
+    Parameters
+    ----------
+    points : (N, 3) float
+        The scan, N >= 1, any units and position.
+    size : int
+        Rows of the network input.
+    frame : PartialFrame or None
+
+    Returns
+    -------
+    NetworkInput
+    """
+    from escape_cli.core.sampling import prepare_input
+
+    pts = as_points(points, "the scan", min_points=1)
+    offset = pts.mean(axis=0)  # (3,)
+    prepared, unique = prepare_input(pts - offset, size)  # (S, 3)
+    if frame is None:
+        return NetworkInput(prepared + offset, unique, Normalization.identity())
+    local = frame.fit(prepared[:unique])
+    norm = Normalization(local.center + offset, local.scale)
+    return NetworkInput((prepared - local.center) / local.scale, unique, norm)
 
 
 # ------------------------------------------------------------------ KITTI boxes

@@ -115,6 +115,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
         "output_name": "distances",
         "anchors": state.get("anchors") or AnchorSettings(k=config["anchors"]).to_dict(),
         "merge_observed": bool(options.get("include_observed", True)),
+        "frame": state.get("frame") or {"kind": "absolute"},
         "normalization": {"method": "centroid + rms radius", "target_radius": state.get("input_radius")},
         "config_name": options.get("config"),
         "config": config,

@@ -125,6 +125,7 @@ def checkpoint_from_onnx(onnx_path: Path) -> tuple[EscapeNet, dict]:
         },
         "anchors": meta.get("anchors"),
         "input_radius": meta.get("normalization", {}).get("target_radius"),
+        "frame": meta.get("frame") if (meta.get("frame") or {}).get("kind") == "partial" else None,
         "lineage": list(training.get("initialised_from", [])),
     }
     return model, state

@@ -1,8 +1,12 @@
 """Training samples: PCN pairs turned into FPS-ordered inputs with their anchors, cached.
 
-Preparing a partial (farthest-point ordering and anchor selection) costs ~50 ms, so it
-is done once per dataset split, in parallel, and kept in an `.npz` cache. Distances are
-computed on the fly from the cached coordinates (cheap), which keeps the cache small.
+Each partial goes through `escape_cli.core.normalize.network_input`, the same function
+`complete` uses, so training sees exactly the rows a user's scan produces: in the
+partial's own frame (`PartialFrame`), and its complete cloud is mapped by the same
+similarity when a batch is drawn. Preparing a partial (farthest-point ordering and
+anchor selection) costs ~50 ms, so it is done once per dataset split, in parallel, and
+kept in an `.npz` cache. Distances are computed on the fly from the cached coordinates
+(cheap), which keeps the cache small.
 """
 
 from __future__ import annotations
@@ -26,13 +30,16 @@ class PreparedSplit:
 
     Attributes
     ----------
-    inputs : (S, N, 3) float32, FPS-ordered partial points (short partials repeated).
-    anchors : (S, K, 3) float32
+    inputs : (S, N, 3) float32, FPS-ordered partial points (short partials repeated), in
+        the network's frame.
+    anchors : (S, K, 3) float32, in the network's frame.
     object_index : (S,) int64, row of `completes` for each sample.
     completes : (O, M, 3) float32, complete clouds.
     synsets, model_ids : (O,) str
     views : (S,) int64
     unique_counts : (S,) int64, distinct leading rows of each input.
+    centers : (S, 3) float64, scales : (S,) float64: sample i's network frame is
+        (x - centers[i]) / scales[i] of the dataset's coordinates.
     """
 
     inputs: np.ndarray
@@ -43,21 +50,29 @@ class PreparedSplit:
     model_ids: np.ndarray
     views: np.ndarray
     unique_counts: np.ndarray
+    centers: np.ndarray
+    scales: np.ndarray
 
     def __len__(self) -> int:
         return len(self.inputs)
 
+    def complete_in_frame(self, sample: int, rows=slice(None)) -> np.ndarray:
+        """Sample `sample`'s complete cloud (its `rows`) in that sample's network frame -> (M', 3) float32."""
+        cloud = self.completes[self.object_index[sample]][rows].astype(np.float64)
+        return ((cloud - self.centers[sample]) / self.scales[sample]).astype(np.float32)
 
-def _prepare_one(args) -> tuple[np.ndarray, np.ndarray, int]:
+
+def _prepare_one(args) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float]:
     from escape_cli.core.anchors import select_anchors
-    from escape_cli.core.sampling import prepare_input
+    from escape_cli.core.normalize import network_input
     from escape_cli.data.pcn import read_pcd
 
-    partial_path, input_points, settings = args
+    partial_path, input_points, settings, frame = args
     partial = read_pcd(partial_path).astype(np.float64)
-    prepared, unique = prepare_input(partial, input_points)
-    anchors = select_anchors(prepared[:unique], **settings.to_dict())
-    return prepared.astype(np.float32), anchors.points.astype(np.float32), unique
+    net_in = network_input(partial, input_points, frame)
+    anchors = select_anchors(net_in.observed, **settings.to_dict())
+    norm = net_in.normalization
+    return net_in.rows.astype(np.float32), anchors.points.astype(np.float32), net_in.unique, norm.center.copy(), norm.scale
 
 
 def prepare_split(
@@ -66,6 +81,7 @@ def prepare_split(
     input_points: int,
     settings: AnchorSettings,
     cache_dir: Path,
+    frame=None,
     categories=None,
     views: str = "all",
     max_views: int | None = None,
@@ -75,6 +91,7 @@ def prepare_split(
     """Read a PCN-layout split and prepare every partial, using a cache in `cache_dir`.
 
     `max_views` keeps the first V views of each object; `limit` the first samples.
+    `frame` is the `PartialFrame` of the network (None: absolute dataset units).
     """
     from escape_cli.data.pcn import list_samples, read_pcd
 
@@ -85,7 +102,8 @@ def prepare_split(
         refs = refs[:limit]
     key = hashlib.sha1(
         json.dumps(
-            [str(Path(root).resolve()), split, input_points, settings.__dict__, [str(r.partial_path) for r in refs]]
+            [str(Path(root).resolve()), split, input_points, settings.__dict__,
+             None if frame is None else frame.to_dict(), [str(r.partial_path) for r in refs]]
         ).encode()
     ).hexdigest()[:12]
     cache = Path(cache_dir) / f"prepared-{split}-{key}.npz"
@@ -98,7 +116,7 @@ def prepare_split(
     for ref in refs:
         objects.setdefault((ref.synset, ref.model_id), len(objects))
     complete_paths = {(r.synset, r.model_id): r.complete_path for r in refs}
-    jobs = [(r.partial_path, input_points, settings) for r in refs]
+    jobs = [(r.partial_path, input_points, settings, frame) for r in refs]
     results = _run_parallel(_prepare_one, jobs, workers, f"preparing {split}")
     completes = np.stack([read_pcd(complete_paths[key]) for key in objects]).astype(np.float32)
     split_data = PreparedSplit(
@@ -110,6 +128,8 @@ def prepare_split(
         model_ids=np.array([k[1] for k in objects]),
         views=np.array([r.view for r in refs], dtype=np.int64),
         unique_counts=np.array([r[2] for r in results], dtype=np.int64),
+        centers=np.stack([r[3] for r in results]).astype(np.float64),
+        scales=np.array([r[4] for r in results], dtype=np.float64),
     )
     cache.parent.mkdir(parents=True, exist_ok=True)
     tmp = cache.with_suffix(".tmp.npz")

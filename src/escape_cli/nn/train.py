@@ -13,12 +13,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from escape_cli.core.normalize import PartialFrame
+from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import EscapeError
-from escape_cli.nn.config import ModelConfig, get_preset
 from escape_cli.nn.checkpoint import load_checkpoint_model, save_checkpoint
+from escape_cli.nn.config import ModelConfig, get_preset
 from escape_cli.nn.loss import chamfer_l1, reconstruct_differentiable
 from escape_cli.nn.model import EscapeNet, count_parameters
-from escape_cli.core.settings import AnchorSettings
 from escape_cli.nn.samples import PreparedSplit, prepare_split
 
 log = logging.getLogger("escape")
@@ -58,12 +59,15 @@ class TrainOptions:
     max_steps: int | None = None  # stop early (tests, smoke runs)
     init: str | None = None  # start from this checkpoint's weights (fresh optimizer and schedule)
     anchors: AnchorSettings = field(default_factory=AnchorSettings)
+    frame: PartialFrame | None = field(default_factory=PartialFrame)  # None: absolute dataset units
 
     @classmethod
     def from_dict(cls, raw: dict) -> "TrainOptions":
         """The options saved in a checkpoint (`asdict` form) back as a `TrainOptions`."""
         values = {key: value for key, value in raw.items() if key in cls.__dataclass_fields__}
         values["anchors"] = AnchorSettings.from_dict(values.get("anchors"))
+        # runs from before the partial frame trained in absolute units
+        values["frame"] = PartialFrame(**values["frame"]) if values.get("frame") else None
         if values.get("categories"):
             values["categories"] = tuple(values["categories"])
         return cls(**values)
@@ -77,20 +81,24 @@ def distances(points: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
 def validation_split(options: TrainOptions, input_points: int) -> PreparedSplit:
     """The run's validation samples: the first view of each val object, `val_limit` of them."""
     return prepare_split(
-        Path(options.data), "val", input_points, options.anchors, Path(options.out) / "cache",
+        Path(options.data), "val", input_points, options.anchors, Path(options.out) / "cache", options.frame,
         categories=options.categories, views="first", limit=options.val_limit, workers=options.workers,
     )
 
 
 def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device):
-    """Rows `idx` of a split: (B, N, K) input and (B, G, K) truth distances, then the xyz of input, anchors, truth."""
+    """Rows `idx` of a split: (B, N, K) input and (B, G, K) truth distances, then the xyz of input, anchors, truth.
+
+    Everything is in each sample's network frame (the truth mapped like its partial).
+    """
     pts = torch.from_numpy(data.inputs[idx]).to(device)  # (B, N, 3)
     anc = torch.from_numpy(data.anchors[idx]).to(device)  # (B, K, 3)
     if noise > 0:
         pts = pts + noise * torch.from_numpy(rng.standard_normal(pts.shape).astype(np.float32)).to(device)
     m = data.completes.shape[1]
-    rows = np.stack([rng.choice(m, min(gt_points, m), replace=False) for _ in idx])  # (B, G)
-    gt = torch.from_numpy(data.completes[data.object_index[idx][:, None], rows]).to(device)  # (B, G, 3)
+    rows = [rng.choice(m, min(gt_points, m), replace=False) for _ in idx]  # B x (G,)
+    gt = np.stack([data.complete_in_frame(i, r) for i, r in zip(idx, rows)])  # (B, G, 3)
+    gt = torch.from_numpy(gt).to(device)
     return distances(pts, anc), distances(gt, anc), pts, anc, gt
 
 
@@ -116,12 +124,12 @@ class Trainer:
         self.best = math.inf
         self.lineage: list[dict] = []  # runs this one was initialised from, oldest first
         self.train_data: PreparedSplit = prepare_split(
-            Path(options.data), "train", self.config.input_points, options.anchors, self.out / "cache",
+            Path(options.data), "train", self.config.input_points, options.anchors, self.out / "cache", options.frame,
             categories=options.categories, max_views=options.views_per_object, workers=options.workers,
         )
         self.val_data: PreparedSplit = validation_split(options, self.config.input_points)
         self.steps_per_epoch = max(1, len(self.train_data) // options.batch)
-        self.input_radius = self._median_input_radius()
+        self.input_radius = self._median_input_radius() if options.frame is None else None
         if resume:
             self._load(self.out / "last.pt")
         elif options.init:
@@ -129,7 +137,7 @@ class Trainer:
         (self.out / "options.json").write_text(json.dumps(asdict(options), indent=2, default=str))
 
     def _median_input_radius(self, count: int = 512) -> float:
-        """Median radius statistic of training partials: the scale `--normalize auto` maps scans to."""
+        """Median radius of training partials in absolute units: the scale an absolute-frame model's `--normalize auto` maps scans to."""
         from escape_cli.core.normalize import cloud_radius
 
         data = self.train_data
@@ -168,6 +176,7 @@ class Trainer:
             "train_objects": len(self.train_data.completes),
             "steps_per_epoch": self.steps_per_epoch,
             "input_radius": self.input_radius,
+            "frame": None if self.opt.frame is None else self.opt.frame.to_dict(),
             "lineage": self.lineage,
         }
 
@@ -190,9 +199,7 @@ class Trainer:
     def _init_weights(self, path: Path) -> None:
         model, state = load_checkpoint_model(path)
         options = state.get("options", {})
-        if model.config != self.config:
-            raise EscapeError(f"--init {path} holds a {options.get('config')!r} network, not {self.opt.config!r}")
-        self.model.load_state_dict(model.state_dict())
+        self.model.load_state_dict(grown_state_dict(model, self.config, self.opt.seed, path))
         self.lineage = state.get("lineage", []) + [{
             "checkpoint": str(path), "steps": state["step"], "train_seconds": round(state.get("elapsed", 0.0), 1),
             "lr": options.get("lr"), "xyz_weight": options.get("xyz_weight", 0.0),
@@ -297,6 +304,7 @@ def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: t
     """Distance-space CD-L1 on a prepared split and xyz CD-L1 after reconstruction on a spread subset.
 
     The same ground-truth subsets every call (fixed seed), so numbers compare across steps and runs.
+    The xyz numbers are in the dataset's units (PCN units), whatever the network's frame.
     """
     from escape_cli.core.metrics import chamfer_l1 as xyz_chamfer_l1
     from escape_cli.core.reconstruction import reconstruct
@@ -320,11 +328,36 @@ def validate(model: EscapeNet, data: PreparedSplit, opt: TrainOptions, device: t
             rec = reconstruct(fine[j].cpu().double().numpy(), anchors, reference_points=data.inputs[i]).points
             observed = data.inputs[i].astype(np.float64)
             out = np.concatenate([rec, observed]) if opt.include_observed else rec
-            truth = data.completes[data.object_index[i]].astype(np.float64)
-            xyz.append(xyz_chamfer_l1(out, truth))
-            baseline.append(xyz_chamfer_l1(observed, truth))
+            truth = data.complete_in_frame(i).astype(np.float64)
+            scale = float(data.scales[i])  # metrics in the dataset's units, comparable across frames
+            xyz.append(scale * xyz_chamfer_l1(out, truth))
+            baseline.append(scale * xyz_chamfer_l1(observed, truth))
     return {
         "val_dmcd_x1000": 1000 * sum(dmcd) / len(data),
         "val_xyz_cd_l1_x1000": 1000 * float(np.mean(xyz)) if xyz else float("nan"),
         "val_input_cd_l1_x1000": 1000 * float(np.mean(baseline)) if baseline else float("nan"),
     }
+
+
+def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> dict:
+    """`model`'s weights for a network of `config`: equal configs, or one that only adds fold seeds / the softplus.
+
+    New fold seeds are copies of randomly chosen old ones plus a little noise (so new
+    points start where old ones were and spread with training); the softplus changes
+    distances above 0.05 by less than 7e-5.
+    """
+    old = model.config
+    if old == config:
+        return model.state_dict()
+    same_otherwise = ModelConfig.from_dict({**old.to_dict(), "fold": config.fold, "positive_output": config.positive_output})
+    if same_otherwise != config or config.fold < old.fold:
+        raise EscapeError(f"--init {path} holds another network ({old}) than the one asked for ({config})")
+    state = model.state_dict()
+    seeds = state["rebuild.seeds"]  # (F_old, H)
+    extra = config.fold - old.fold
+    if extra:
+        gen = torch.Generator().manual_seed(seed)
+        pick = torch.randint(old.fold, (extra,), generator=gen)
+        noise = 0.05 * seeds.std() * torch.randn(extra, seeds.shape[1], generator=gen)
+        state["rebuild.seeds"] = torch.cat([seeds, seeds[pick] + noise])  # (F, H)
+    return state
