@@ -47,6 +47,19 @@ def tiny_model(tmp_path_factory) -> Path:
     return folder / "tiny.onnx"
 
 
+@pytest.fixture(scope="session")
+def tiny_absolute_model(tmp_path_factory) -> Path:
+    """The tiny network as a model of the older kind, trained in absolute PCN units."""
+    pytest.importorskip("torch")
+    from escape_cli.nn.export import export_onnx
+    from tests_support import write_tiny_checkpoint
+
+    folder = tmp_path_factory.mktemp("tiny_absolute_model")
+    write_tiny_checkpoint(folder / "tiny.pt", partial_frame=False)
+    export_onnx(folder / "tiny.pt", folder / "tiny.onnx")
+    return folder / "tiny.onnx"
+
+
 def realdata_id(path) -> str:
     """Test id of a realdata cloud: its folder and name."""
     return "absent" if path is None else f"{path.parent.name}/{path.name}"

@@ -10,7 +10,7 @@ import pytest
 from cli_runner import run_escape
 from escape_cli.data.pcn import read_pcd
 from escape_cli.evaluation import Perturbation
-from escape_cli.io import read_points
+from escape_cli.io import read_points, write_points
 from escape_cli.core.metrics import chamfer_l1_naive, chamfer_l2_naive, fscore_naive
 from tests_support import write_tiny_pcn_tree
 
@@ -104,3 +104,38 @@ def test_json_report_is_not_overwritten_without_flag(tiny_tree, tiny_model, tmp_
     assert res.exit_code != 0 and "--overwrite" in res.stderr and report.read_text() == "keep"
     assert run_escape(*args, "--overwrite").exit_code == 0
     assert json.loads(report.read_text())["average"]["count"] == 1
+
+
+def test_pairs_folder_scores_every_pair_with_its_ratio(tiny_model, tmp_path, rng):
+    from tests_support import ellipsoid_surface
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    for name, radii in (("box_a", (0.3, 0.2, 0.1)), ("box_b", (0.2, 0.4, 0.3)), ("cup", (0.25, 0.25, 0.4))):
+        complete_cloud = ellipsoid_surface(rng, 2048, radii)
+        write_points(folder / f"{name}_complete.ply", complete_cloud)
+        write_points(folder / f"{name}_partial.pcd", complete_cloud[complete_cloud[:, 0] > 0][:500])
+    (folder / "notes.txt").write_text("not a cloud pair\n")  # other files are ignored
+    res = run_escape("eval", "--dataset", "pairs", "--root", folder, "--model", tiny_model, "--json", tmp_path / "r.json")
+    assert res.exit_code == 0, res.stderr
+    assert "escape / input" in res.stdout.decode()
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert list(report["categories"]) == ["box_a", "box_b", "cup"]
+    ratios = []
+    for name, stats in report["categories"].items():
+        ratio = stats["escape/cd_l1_x1000_mean"] / stats["input/cd_l1_x1000_mean"]
+        assert stats["escape/ratio_to_input"] == pytest.approx(ratio)
+        ratios.append(ratio)
+    assert report["average"]["escape/ratio_to_input"] == pytest.approx(np.mean(ratios))  # mean of the ratios
+    for sample in report["samples"]:  # the two halves of CD-L1 average to it
+        m = sample["metrics"]
+        assert (m["escape/pred_to_gt_x1000"] + m["escape/gt_to_pred_x1000"]) / 2 == pytest.approx(m["escape/cd_l1_x1000"])
+
+
+def test_pairs_folder_needs_complete_pairs(tiny_model, tmp_path):
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    write_points(folder / "lonely_partial.ply", np.random.default_rng(0).random((100, 3)))
+    res = run_escape("eval", "--dataset", "pairs", "--root", folder, "--model", tiny_model)
+    assert res.exit_code == 1 and len(res.stderr_lines) == 1
+    assert "lonely_partial.ply has no lonely_complete" in res.stderr

@@ -64,7 +64,7 @@ def test_agree_with_brute_force(rng, m, g):
         assert fscore(pred, gt, t) == pytest.approx(fscore_naive(pred, gt, t), abs=1e-12)
     assert fidelity(pred, gt) == pytest.approx(fidelity_naive(pred, gt), rel=1e-12)
     fast, slow = point_metrics(pred, gt, 0.05), point_metrics_naive(pred, gt, 0.05)
-    assert fast.keys() == slow.keys() == {"cd_l1", "cd_l2", "fscore"}
+    assert fast.keys() == slow.keys() == {"cd_l1", "cd_l2", "fscore", "pred_to_gt", "gt_to_pred"}
     for key in fast:
         assert fast[key] == pytest.approx(slow[key], rel=1e-12, abs=1e-15)
 
@@ -75,6 +75,9 @@ def test_point_metrics_match_single_functions(rng):
     assert out["cd_l1"] == chamfer_l1(pred, gt)
     assert out["cd_l2"] == chamfer_l2(pred, gt)
     assert out["fscore"] == fscore(pred, gt, threshold=0.05)
+    assert out["pred_to_gt"] == pytest.approx(nearest_distances(pred, gt).mean(), rel=1e-12)
+    assert out["gt_to_pred"] == pytest.approx(nearest_distances(gt, pred).mean(), rel=1e-12)
+    assert out["cd_l1"] == pytest.approx((out["pred_to_gt"] + out["gt_to_pred"]) / 2, rel=1e-12)
     assert all(isinstance(v, float) for v in out.values())
 
 

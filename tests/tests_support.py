@@ -5,8 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 
-def write_tiny_checkpoint(path, seed: int = 0):
-    """A checkpoint in the layout `escape train` writes, for an untrained tiny network."""
+def write_tiny_checkpoint(path, seed: int = 0, partial_frame: bool = True):
+    """A checkpoint in the layout `escape train` writes, for an untrained tiny network.
+
+    `partial_frame`: the model works in each scan's own frame (today's models); False
+    makes one of the older kind, trained in absolute units (radius 0.25 for --normalize auto).
+    """
     import torch
 
     from escape_cli.nn.config import get_preset
@@ -20,7 +24,9 @@ def write_tiny_checkpoint(path, seed: int = 0):
             "model": net.state_dict(), "config": config.to_dict(), "step": 0, "elapsed": 0.0,
             "options": {"config": "tiny", "seed": seed, "include_observed": True},
             "anchors": {"k": 8, "method": "ball", "radius": 0.075, "knn": 16},
-            "parameters": sum(p.numel() for p in net.parameters()), "input_radius": 0.25,
+            "parameters": sum(p.numel() for p in net.parameters()),
+            "input_radius": None if partial_frame else 0.25,
+            "frame": {"kind": "partial", "rows": 256, "radius": 0.28} if partial_frame else None,
         },
         path,
     )

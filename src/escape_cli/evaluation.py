@@ -20,6 +20,9 @@ METRIC_DEFINITIONS = {
     "cd_l1_x1000": "1000 * (mean_x min_y ||x-y|| + mean_y min_x ||y-x||) / 2",
     "cd_l2_x1000": "1000 * (mean_x min_y ||x-y||^2 + mean_y min_x ||y-x||^2)",
     "fscore_1pct": "2PR/(P+R), P = share of output within 0.01 of truth, R = share of truth within 0.01 of output",
+    "pred_to_gt_x1000": "1000 * mean_x min_y ||x-y||, x in the output, y in the truth (precision half of CD-L1)",
+    "gt_to_pred_x1000": "1000 * mean_y min_x ||y-x|| (recall half of CD-L1)",
+    "ratio_to_input": "CD-L1(output, truth) / CD-L1(input, truth); pairs: the mean of the per-pair ratios",
     "fidelity_x1000": "1000 * mean over input points of the distance to the nearest output point",
     "mmd_cd_l2_x1000": "1000 * min over reference cars of CD-L2(output, reference)",
 }
@@ -51,7 +54,8 @@ def pcn_metrics(pred: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     from escape_cli.core.metrics import point_metrics
 
     m = point_metrics(pred, truth, threshold=0.01)
-    return {"cd_l1_x1000": 1000 * m["cd_l1"], "cd_l2_x1000": 1000 * m["cd_l2"], "fscore_1pct": m["fscore"]}
+    return {"cd_l1_x1000": 1000 * m["cd_l1"], "cd_l2_x1000": 1000 * m["cd_l2"], "fscore_1pct": m["fscore"],
+            "pred_to_gt_x1000": 1000 * m["pred_to_gt"], "gt_to_pred_x1000": 1000 * m["gt_to_pred"]}
 
 
 @dataclass
@@ -61,6 +65,7 @@ class PCNEvaluation:
     methods: list[str]
     rotate: bool
     records: list[dict] = field(default_factory=list)
+    mean_of_ratios: bool = False  # the average ratio to the input copy: mean of rows' ratios (pairs), else ratio of averages
 
     def summary(self) -> dict:
         from escape_cli.data.pcn import CATEGORIES
@@ -75,7 +80,21 @@ class PCNEvaluation:
             keys = next(iter(categories.values())).keys() - {"synset", "count"}
             average = {k: float(np.mean([c[k] for c in categories.values()])) for k in sorted(keys)}
             average["count"] = sum(c["count"] for c in categories.values())
+            for stats in categories.values():
+                _add_ratios(stats)
+            _add_ratios(average)
+            if self.mean_of_ratios:
+                for key in [k for k in average if k.endswith("ratio_to_input")]:
+                    average[key] = float(np.mean([c[key] for c in categories.values()]))
         return {"categories": categories, "average": average}
+
+
+def _add_ratios(stats: dict) -> None:
+    """escape/cd_l1 mean over input/cd_l1 mean, for each pose, where the input copy was scored."""
+    for prefix in ("", "rotated/"):
+        ours, baseline = stats.get(f"{prefix}escape/cd_l1_x1000_mean"), stats.get(f"{prefix}input/cd_l1_x1000_mean")
+        if ours is not None and baseline:
+            stats[f"{prefix}escape/ratio_to_input"] = ours / baseline
 
 
 def _aggregate(rows: list[dict]) -> dict[str, float]:
@@ -183,6 +202,58 @@ def evaluate_pairs(
         metrics = _score_sample(partial, truth, completers, rotate, rng, saver)
         result.records.append(
             {"synset": root.name, "category": root.name, "model_id": view.stem, "view": i,
+             "input_points": int(len(partial)), "metrics": metrics}
+        )
+    return result
+
+
+def pair_folder_files(root: Path) -> list[tuple[str, Path, Path]]:
+    """(name, partial, complete) for every `<name>_partial.<ext>` with a `<name>_complete.<ext>` beside it, sorted."""
+    from escape_cli.io import CLOUD_SUFFIXES
+
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root} is not a folder")
+    files = {p.stem: p for p in root.iterdir() if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES}
+    pairs = []
+    for stem, partial in sorted(files.items()):
+        if not stem.endswith("_partial"):
+            continue
+        name = stem[: -len("_partial")]
+        complete = files.get(f"{name}_complete")
+        if complete is None:
+            raise DatasetError(f"{partial.name} has no {name}_complete.<ext> beside it in {root}")
+        pairs.append((name, partial, complete))
+    if not pairs:
+        raise DatasetError(f"{root} holds no <name>_partial.<ext> / <name>_complete.<ext> pairs")
+    return pairs
+
+
+def evaluate_pair_folder(
+    root: Path,
+    completers: dict[str, Completer],
+    *,
+    rotate: bool = False,
+    seed: int = 0,
+    perturbation: Perturbation = Perturbation(),
+    save_dir: Path | None = None,
+) -> PCNEvaluation:
+    """Evaluate a folder of partial/complete pairs (the layout of realdata's `mvp_pairs`).
+
+    Every `<name>_partial.<ext>` is completed and scored against `<name>_complete.<ext>`
+    (the two in one frame); each pair is its own row, and the average ratio to the
+    input copy is the mean of the per-pair ratios, which is free of the pairs' units.
+    """
+    from escape_cli.io import read_points
+
+    result = PCNEvaluation(methods=list(completers), rotate=rotate, mean_of_ratios=True)
+    for i, (name, partial_path, complete_path) in enumerate(pair_folder_files(root)):
+        rng = np.random.default_rng((seed, i))
+        partial = perturbation.apply(read_points(partial_path), rng)
+        saver = None if save_dir is None else (lambda tag, pts, n=name: _save(save_dir, "pairs", f"{n}_{tag}", pts))
+        metrics = _score_sample(partial, read_points(complete_path), completers, rotate, rng, saver)
+        result.records.append(
+            {"synset": name, "category": name, "model_id": name, "view": 0,
              "input_points": int(len(partial)), "metrics": metrics}
         )
     return result

@@ -9,13 +9,13 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE, SNAP_RADIUS
+from escape_cli.cli.options import NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
 
 
 def command(
     dataset: str = typer.Option(
         "pcn", "--dataset",
-        help="pcn (a PCN-layout tree, e.g. from `escape dataset synth`), pair (a folder with complete.<ext> and partial views) or kitti.",
+        help="pcn (a PCN-layout tree, e.g. from `escape dataset synth`), pair (one object: a folder with complete.<ext> and partial views), pairs (a folder of <name>_partial.<ext> / <name>_complete.<ext> pairs) or kitti.",
     ),
     root: Path = typer.Option(..., "--root", help="Dataset folder."),
     split: str = typer.Option("test", "--split", help="PCN split: train, val or test."),
@@ -29,7 +29,7 @@ def command(
     baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge observed points into the output."),
     snap_radius: Optional[float] = SNAP_RADIUS,
-    normalize: str = typer.Option("none", "--normalize", help="none (data already in PCN units) or auto."),
+    normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
     json_path: Optional[Path] = typer.Option(None, "--json", help="Write every number to this JSON file."),
     save: Optional[Path] = typer.Option(None, "--save", help="Write every completion (PLY) under this folder."),
@@ -39,13 +39,20 @@ def command(
     from rich.console import Console
 
     from escape_cli.cli.options import check_output
-    from escape_cli.evaluation import METRIC_DEFINITIONS, Perturbation, evaluate_kitti, evaluate_pairs, evaluate_pcn
+    from escape_cli.evaluation import (
+        METRIC_DEFINITIONS,
+        Perturbation,
+        evaluate_kitti,
+        evaluate_pair_folder,
+        evaluate_pairs,
+        evaluate_pcn,
+    )
     from escape_cli.inference import load_model
     from escape_cli.pipeline import complete
     from escape_cli.core.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
 
-    if dataset not in ("pcn", "pair", "kitti"):
-        raise typer.BadParameter("must be pcn, pair or kitti", param_hint="--dataset")
+    if dataset not in ("pcn", "pair", "pairs", "kitti"):
+        raise typer.BadParameter("must be pcn, pair, pairs or kitti", param_hint="--dataset")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     check_output(json_path, overwrite)
@@ -74,12 +81,13 @@ def command(
                 perturbation=Perturbation(noise=noise, drop=drop), limit=limit, save_dir=save,
                 progress=lambda i, n: status.update(f"evaluating {i}/{n}"),
             )
-    elif dataset == "pair":
+    elif dataset in ("pair", "pairs"):
         settings.update(noise=noise, drop=drop)
-        result = evaluate_pairs(
+        evaluate = evaluate_pairs if dataset == "pair" else evaluate_pair_folder
+        result = evaluate(
             root, completers, rotate=rotate, seed=seed, perturbation=Perturbation(noise=noise, drop=drop), save_dir=save
         )
-    if dataset in ("pcn", "pair"):
+    if dataset in ("pcn", "pair", "pairs"):
         summary = result.summary()
         _print_pcn_table(summary, list(completers), rotate)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}
@@ -117,6 +125,9 @@ def _print_pcn_table(summary: dict, methods: list[str], rotate: bool) -> None:
                 table.add_column(f"{tag} med", justify="right")
                 table.add_column(f"{tag} CD-L2", justify="right")
                 table.add_column(f"{tag} F@1%", justify="right")
+    ratio = "input" in methods
+    if ratio:
+        table.add_column("escape / input", justify="right")
     if rotate:
         table.add_column("rot gap", justify="right")
 
@@ -129,6 +140,8 @@ def _print_pcn_table(summary: dict, methods: list[str], rotate: bool) -> None:
                     cells.append(f"{stats[f'{prefix}{name}/cd_l1_x1000_median']:.2f}")
                     cells.append(f"{stats[f'{prefix}{name}/cd_l2_x1000_mean']:.2f}")
                     cells.append(f"{stats[f'{prefix}{name}/fscore_1pct_mean']:.3f}")
+        if ratio:
+            cells.append(f"x{stats['escape/ratio_to_input']:.2f}")
         if rotate:
             a, b = stats["escape/cd_l1_x1000_mean"], stats["rotated/escape/cd_l1_x1000_mean"]
             cells.append(f"{100 * (b - a) / a:+.2f}%")

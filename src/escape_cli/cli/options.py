@@ -16,6 +16,10 @@ FORMAT = typer.Option(
     None, "--format", "-f", help="File format (ply, pcd, xyz, txt, pts, npy); default: from the extension."
 )
 JSON_OUT = typer.Option(False, "--json", help="Print machine-readable JSON on stdout.")
+NORMALIZE_HELP = (
+    "auto: each scan is completed in its own frame (centre and size from the scan; any units, mapped back exactly); "
+    "none: feed coordinates as they are (only for older models trained in absolute PCN units)."
+)
 SNAP_RADIUS = typer.Option(
     None, "--snap-radius", min=0.0,
     help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",

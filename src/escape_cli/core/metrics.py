@@ -224,15 +224,21 @@ def point_metrics(pred, gt, threshold: float = 0.01) -> dict[str, float]:
     -------
     dict
         ``{"cd_l1": chamfer_l1, "cd_l2": chamfer_l2, "fscore": fscore}``, raw values
-        (not x 1000), each as defined in the function of that name.
+        (not x 1000), each as defined in the function of that name, and the two halves
+        of CD-L1: ``"pred_to_gt"`` = mean_x min_y ||x - y|| (precision: are the predicted
+        points on the shape?) and ``"gt_to_pred"`` = mean_y min_x ||y - x|| (recall: is
+        the shape covered?); cd_l1 is their mean.
     """
     t = _check_threshold(threshold)
-    d_pg, d_gp = _both_ways(pred, gt, naive=False)  # (M,), (G,)
-    return {"cd_l1": _cd_l1(d_pg, d_gp), "cd_l2": _cd_l2(d_pg, d_gp), "fscore": _fscore(d_pg, d_gp, t)}
+    return _point_metrics(*_both_ways(pred, gt, naive=False), t)  # (M,), (G,)
 
 
 def point_metrics_naive(pred, gt, threshold: float = 0.01) -> dict[str, float]:
     """Brute-force reference for `point_metrics`."""
     t = _check_threshold(threshold)
-    d_pg, d_gp = _both_ways(pred, gt, naive=True)
-    return {"cd_l1": _cd_l1(d_pg, d_gp), "cd_l2": _cd_l2(d_pg, d_gp), "fscore": _fscore(d_pg, d_gp, t)}
+    return _point_metrics(*_both_ways(pred, gt, naive=True), t)
+
+
+def _point_metrics(d_pg: np.ndarray, d_gp: np.ndarray, threshold: float) -> dict[str, float]:
+    return {"cd_l1": _cd_l1(d_pg, d_gp), "cd_l2": _cd_l2(d_pg, d_gp), "fscore": _fscore(d_pg, d_gp, threshold),
+            "pred_to_gt": float(d_pg.mean()), "gt_to_pred": float(d_gp.mean())}
