@@ -106,3 +106,53 @@ def test_surface_sampling_is_seeded():
     c = sample_outer_surface(shape.parts, 1000, np.random.default_rng(2))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def _generator_2(synset: str, seed: int):
+    return generate_shape(synset, np.random.default_rng(seed), np.random.default_rng(10_000 + seed))
+
+
+@pytest.mark.parametrize("synset", SYNSETS)
+def test_generator_2_shapes_are_normalised_with_outer_surface_points(synset):
+    for seed in range(4):
+        shape = _generator_2(synset, seed)
+        lower, upper = shape.bounds()
+        np.testing.assert_allclose((lower + upper) / 2, 0.0, atol=1e-9)
+        assert np.linalg.norm(upper - lower) == pytest.approx(1.0)
+        points = sample_outer_surface(shape.parts, 2048, np.random.default_rng(seed))
+        for part in shape.parts:
+            assert not part.contains_strictly(points).any()
+
+
+def test_generator_2_adds_hollow_and_rounded_subtypes():
+    boats = {_generator_2("04530566", s).subtype for s in range(40)}
+    chairs = {_generator_2("03001627", s).subtype for s in range(40)}
+    lamps = {_generator_2("03636649", s).subtype for s in range(20)}
+    cars = [_generator_2("02958343", s).subtype for s in range(20)]
+    assert {"rowboat", "rowboat_canoe"} & boats and {"shell_legs", "shell_pedestal"} & chairs
+    assert any(s.endswith("_open") for s in lamps)
+    assert sum(s.endswith("_rounded") for s in cars) >= 10
+
+
+def test_rounding_keeps_the_box_and_rounds_the_corners():
+    from escape_cli.data.primitives import rounded
+
+    corners = box([0, 0, 0], (1.0, 0.5, 0.2))
+    part = ConvexPart.from_points(rounded(corners, 0.05))
+    np.testing.assert_allclose(part.lower, [-0.5, -0.25, -0.1])
+    np.testing.assert_allclose(part.upper, [0.5, 0.25, 0.1])
+    assert not part.contains_strictly(np.array([[0.499, 0.249, 0.099]]))[0]  # the corner is cut away
+    assert part.contains_strictly(np.array([[0.45, 0.2, 0.05]]))[0]
+
+
+def test_open_shell_has_no_buried_shared_faces():
+    """A thin drum shell: sampled points lie on its inner or outer wall, never between its slabs."""
+    from escape_cli.data.primitives import grid_shell, revolved_grid
+
+    slabs = [ConvexPart.from_points(s) for s in grid_shell(revolved_grid([0.2, 0.2], [0.0, 0.3], 24), 0.01)]
+    points = sample_outer_surface(slabs, 4000, np.random.default_rng(0))
+    radius = np.linalg.norm(points[:, [0, 2]], axis=1)
+    on_wall = (np.abs(radius - 0.2) < 0.004) | (np.abs(radius - 0.19) < 0.004)  # outer / inner (polygonal) wall
+    on_rim = (points[:, 1] < 1e-6) | (points[:, 1] > 0.3 - 1e-6)
+    assert (on_wall | on_rim).mean() > 0.97
+    assert ((radius > 0.197) | (radius < 0.192)).mean() > 0.97  # next to nothing inside the wall

@@ -22,10 +22,12 @@ from escape_cli.errors import DatasetError, OutputExistsError
 COMPLETE_POINTS = 8192  # dense enough for the 0.01 partial-on-surface check, small enough to be quick
 
 
-def _config(seed: int = 0, train: int = 1, test: int = 1, categories=tuple(sorted(CATEGORIES))) -> SynthConfig:
+def _config(seed: int = 0, train: int = 1, test: int = 1, categories=tuple(sorted(CATEGORIES)), generator: int = 1) -> SynthConfig:
+    # generator 1 by default: its solid parts make "a view sees only part of the shape" testable at 0.01
+    # (generator 2's thin walls are about that thick)
     return SynthConfig(objects_per_category={"train": train, "val": 0, "test": test},
                        views={"train": 2, "val": 1, "test": 1}, categories=categories, seed=seed,
-                       complete_points=COMPLETE_POINTS)
+                       complete_points=COMPLETE_POINTS, generator=generator)
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -42,7 +44,7 @@ def tiny_dataset(tmp_path_factory) -> Path:
 
 def test_writes_the_pcn_layout(tiny_dataset):
     for synset in CATEGORIES:
-        train_id, test_id = model_id_for(0, "train", synset, 0), model_id_for(0, "test", synset, 0)
+        train_id, test_id = model_id_for(0, "train", synset, 0, 1), model_id_for(0, "test", synset, 0, 1)
         assert sorted(p.name for p in (tiny_dataset / "train/partial" / synset / train_id).iterdir()) == ["00.pcd", "01.pcd"]
         assert sorted(p.name for p in (tiny_dataset / "test/partial" / synset / test_id).iterdir()) == ["00.pcd"]
         assert read_pcd(tiny_dataset / "train/complete" / synset / f"{train_id}.pcd").shape == (COMPLETE_POINTS, 3)
@@ -107,7 +109,7 @@ def test_same_seed_same_bytes_whatever_the_workers(tiny_dataset, tmp_path):
 def test_another_seed_gives_other_data(tiny_dataset, tmp_path):
     other = tmp_path / "other"
     synthesize(other, _config(seed=1, test=0, categories=("03001627",)))
-    chair = lambda root, seed: read_pcd(root / "train/complete/03001627" / f"{model_id_for(seed, 'train', '03001627', 0)}.pcd")
+    chair = lambda root, seed: read_pcd(root / "train/complete/03001627" / f"{model_id_for(seed, 'train', '03001627', 0, 1)}.pcd")
     assert chair(tiny_dataset, 0).shape == chair(other, 1).shape
     assert not np.array_equal(chair(tiny_dataset, 0), chair(other, 1))
 
@@ -170,3 +172,28 @@ def test_cli_synth_bad_input_is_one_line(tmp_path, make_args, message):
 def test_cli_info_on_a_folder_that_is_not_a_dataset(tmp_path):
     result = run_escape("dataset", "info", str(tmp_path))
     assert result.exit_code != 0 and result.stderr_lines == [f"escape: error: {tmp_path}: no split with samples (PCN layout expected)"]
+
+
+def test_generator_1_files_never_change(tmp_path):
+    """The first models' training data stays reproducible: generator 1's bytes are pinned."""
+    import hashlib
+
+    config = SynthConfig(objects_per_category={"train": 1, "val": 0, "test": 0}, views={"train": 1, "val": 1, "test": 1},
+                         categories=("03001627", "03636649"), seed=0, complete_points=2048, generator=1)
+    synthesize(tmp_path / "g1", config)
+    digests = {p.relative_to(tmp_path / "g1").as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+               for p in sorted((tmp_path / "g1").rglob("*.pcd"))}
+    assert digests == {
+        "train/complete/03001627/184e69c92512e8895a3a57aad2589792.pcd": "c58e620e4a962d19523479fe7e2140aa482c01fa75599501478e21ce1ed815ef",
+        "train/complete/03636649/56baf3f545cc58658584c3f67f129c3c.pcd": "383121accbf11f384ca29d0a8bcc53be3d6b302802311fb65a930fc212cbb74a",
+        "train/partial/03001627/184e69c92512e8895a3a57aad2589792/00.pcd": "07f8f6514d4142f974051bf727d1efda72f3dcd74504df8fd6c93c00d3bb0cf4",
+        "train/partial/03636649/56baf3f545cc58658584c3f67f129c3c/00.pcd": "01c8b0477f6a196374b63476f092e1e029cee1827cab1e5eafff2626dfa0381e",
+    }
+
+
+def test_generators_make_different_objects_with_different_ids(tmp_path):
+    one, two = (SynthConfig(objects_per_category={"train": 0, "val": 0, "test": 1}, categories=("04530566",),
+                            complete_points=2048, generator=g) for g in (1, 2))
+    assert model_id_for(0, "test", "04530566", 0, 1) != model_id_for(0, "test", "04530566", 0, 2)
+    a, b = synthesize(tmp_path / "a", one), synthesize(tmp_path / "b", two)
+    assert a["generator_version"] == "1" and b["generator_version"] == "2"

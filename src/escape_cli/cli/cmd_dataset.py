@@ -29,6 +29,10 @@ def synth(
     workers: int = typer.Option(1, "--workers", "-w", min=1, max=256, help="Worker processes (results do not depend on it)."),
     categories: Optional[List[str]] = CATEGORIES_OPTION,
     complete_points: int = typer.Option(16384, "--complete-points", min=16, help="Points per complete cloud (PCN: 16384)."),
+    generator: int = typer.Option(
+        2, "--generator", min=1, max=2,
+        help="Shape generator: 2 (rounded edges, hollow shades, rowing boats, shell chairs) or 1 (convex primitives only, the first models' data).",
+    ),
     overwrite: bool = OVERWRITE,
     json_out: bool = JSON_OUT,
 ) -> None:
@@ -56,6 +60,7 @@ def synth(
         categories=tuple(resolve_categories(categories)),
         seed=seed,
         complete_points=complete_points,
+        generator=generator,
     )
     check_config(config)
     prepare_output(out, overwrite)  # refuse a non-empty folder before any progress bar shows

@@ -301,3 +301,106 @@ def polygon_section(outline_yz: np.ndarray, x: float) -> np.ndarray:
     """Place a (S, 2) outline given in (y, z) into the plane of constant `x`; returns (S, 3)."""
     outline_yz = np.asarray(outline_yz, dtype=np.float64)
     return np.column_stack([np.full(len(outline_yz), x), outline_yz[:, 0], outline_yz[:, 1]])
+
+
+# ----------------------------------------------------------- rounded parts and shells
+
+# 26 unit directions (cube faces, edges and corners): the sphere the rounding sweeps.
+_ROUNDING_DIRECTIONS = np.array(
+    [d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)], dtype=np.float64
+) - 1.0
+_ROUNDING_DIRECTIONS /= np.linalg.norm(_ROUNDING_DIRECTIONS, axis=1, keepdims=True)
+
+
+def rounded(vertices, radius: float) -> np.ndarray:
+    """Vertices of a convex part with its edges and corners rounded by about `radius`.
+
+    The part is shrunk towards its centre by `radius` along each axis and swept by a
+    26-direction sphere of that radius (a Minkowski sum), so its bounding box stays the
+    same and its faces keep their planes: a box becomes a box with rounded edges, like
+    a cushion, a car body or a cabinet's top.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float
+    radius : float
+        At most 0.45 of the part's smallest extent (clamped).
+
+    Returns
+    -------
+    vertices : (26 V, 3) float64
+    """
+    points = np.asarray(vertices, dtype=np.float64)
+    lower, upper = points.min(axis=0), points.max(axis=0)
+    extent = upper - lower
+    radius = float(min(radius, 0.45 * extent.min()))
+    if radius <= 0:
+        return points
+    centre = (lower + upper) / 2
+    shrunk = centre + (points - centre) * (1.0 - 2.0 * radius / extent)  # (V, 3)
+    return (shrunk[:, None, :] + radius * _ROUNDING_DIRECTIONS[None]).reshape(-1, 3)
+
+
+def grid_shell(surface: np.ndarray, thickness: float, overlap: float = 0.15) -> list[np.ndarray]:
+    """A thin curved wall as convex slabs: one per cell of a gridded surface, `thickness` deep.
+
+    Each cell's four corners and the same corners moved `thickness` along minus the
+    surface normal make one convex slab; slabs are widened by `overlap` of their size
+    on every side so that neighbours overlap, which buries the faces they share (the
+    outer-surface sampler drops points strictly inside another part). Hollow shapes,
+    an open lamp shade, a boat's hull, a curved chair back, are unions of such slabs.
+
+    Parameters
+    ----------
+    surface : (U, V, 3) float
+        Grid of points on the outer side of the wall (U, V >= 2). The normal is
+        d/du x d/dv; the wall grows to the other side.
+    thickness : float
+    overlap : float
+
+    Returns
+    -------
+    slabs : list of (8, 3) float64, (U - 1) x (V - 1) of them.
+    """
+    grid = np.asarray(surface, dtype=np.float64)
+    if grid.ndim != 3 or grid.shape[2] != 3 or min(grid.shape[:2]) < 2:
+        raise DegenerateGeometryError(f"a shell needs a (U>=2, V>=2, 3) grid, got {grid.shape}")
+    du = np.gradient(grid, axis=0)
+    dv = np.gradient(grid, axis=1)
+    normal = np.cross(du, dv)  # (U, V, 3)
+    length = np.linalg.norm(normal, axis=2, keepdims=True)
+    if not np.all(length > 0):
+        raise DegenerateGeometryError("a shell's grid has a degenerate cell (zero normal)")
+    inner = grid - thickness * normal / length
+    slabs = []
+    for i in range(grid.shape[0] - 1):
+        for j in range(grid.shape[1] - 1):
+            corners = np.concatenate([grid[i:i + 2, j:j + 2].reshape(4, 3), inner[i:i + 2, j:j + 2].reshape(4, 3)])
+            centre = corners.mean(axis=0)
+            slabs.append(centre + (corners - centre) * (1.0 + overlap))
+    return slabs
+
+
+def revolved_grid(radii, heights, segments: int = 24, centre=(0.0, 0.0, 0.0), closed: bool = True) -> np.ndarray:
+    """A surface of revolution about the vertical axis through `centre`, as a (P, S(+1), 3) grid for `grid_shell`.
+
+    Parameters
+    ----------
+    radii, heights : (P,) float
+        The profile: radius and height (relative to `centre`) of each ring, in order
+        along the wall (bottom to top for an outward normal).
+    segments : int
+        Points per ring.
+    closed : bool
+        Repeat the first angle at the end, so the shell goes all the way round.
+
+    Returns
+    -------
+    grid : (P, S + closed, 3) float64
+    """
+    radii = np.asarray(radii, dtype=np.float64)
+    heights = np.asarray(heights, dtype=np.float64)
+    angles = np.linspace(0.0, 2 * np.pi, segments + 1 if closed else segments, endpoint=closed)
+    ring = np.stack([np.cos(angles), np.zeros_like(angles), np.sin(angles)], axis=1)  # (S, 3): d/du x d/dv points out
+    grid = radii[:, None, None] * ring[None] + heights[:, None, None] * np.array([0.0, 1.0, 0.0])
+    return grid + np.asarray(centre, dtype=np.float64)

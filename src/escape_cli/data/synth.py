@@ -30,8 +30,12 @@ from escape_cli.data.shapes import generate_shape
 from escape_cli.data.surface import sample_outer_surface
 from escape_cli.errors import DatasetError, OutputExistsError
 
-GENERATOR_VERSION = "1"
-"""Bump when the same seed would give different files."""
+GENERATORS = (1, 2)
+"""Shape generators: 1, convex primitives (the data the first models were trained on);
+2, the same shapes made closer to real objects plus hollow sub-types
+(`escape_cli.data.shapes.realism`). A generator's files never change for a seed: a new
+kind of data is a new generator number."""
+DEFAULT_GENERATOR = 2
 
 METADATA_FILE = "escape_synth.json"
 
@@ -52,6 +56,8 @@ class SynthConfig:
     complete_points : int
         Points in every complete cloud (PCN: 16384).
     camera : DepthCamera
+    generator : int
+        One of `GENERATORS`.
     """
 
     objects_per_category: dict[str, int] = field(default_factory=lambda: {"train": 0, "val": 0, "test": 0})
@@ -60,6 +66,7 @@ class SynthConfig:
     seed: int = 0
     complete_points: int = 16384
     camera: DepthCamera = DepthCamera()
+    generator: int = DEFAULT_GENERATOR
 
     def jobs(self) -> list[tuple[str, str, int]]:
         """Every (split, synset, index) to make, categories interleaved."""
@@ -92,14 +99,19 @@ def object_seed(seed: int, split: str, synset: str, index: int) -> np.random.See
     return np.random.SeedSequence([int(seed), SPLITS.index(split), int(synset), int(index)])
 
 
-def model_id_for(seed: int, split: str, synset: str, index: int) -> str:
-    """A ShapeNet-looking 32-hex model id, deterministic in (seed, split, synset, index)."""
-    key = f"escape-synth/{GENERATOR_VERSION}/{seed}/{split}/{synset}/{index}"
+def detail_seed(seed: int, split: str, synset: str, index: int) -> np.random.SeedSequence:
+    """The second stream of one object, for what generator 2 adds to generator 1's shape."""
+    return np.random.SeedSequence([int(seed), SPLITS.index(split), int(synset), int(index), 2])
+
+
+def model_id_for(seed: int, split: str, synset: str, index: int, generator: int = DEFAULT_GENERATOR) -> str:
+    """A ShapeNet-looking 32-hex model id, deterministic in (generator, seed, split, synset, index)."""
+    key = f"escape-synth/{generator}/{seed}/{split}/{synset}/{index}"
     return hashlib.md5(key.encode()).hexdigest()
 
 
 def generate_object(synset: str, rng: np.random.Generator, n_views: int, complete_points: int = 16384,
-                    camera: DepthCamera = DepthCamera()) -> GeneratedObject:
+                    camera: DepthCamera = DepthCamera(), detail: np.random.Generator | None = None) -> GeneratedObject:
     """Draw one shape and make its complete cloud and partial views.
 
     Parameters
@@ -109,12 +121,14 @@ def generate_object(synset: str, rng: np.random.Generator, n_views: int, complet
     n_views : int
     complete_points : int
     camera : DepthCamera
+    detail : numpy.random.Generator or None
+        Generator 2's second stream (None: generator 1).
 
     Returns
     -------
     obj : GeneratedObject
     """
-    shape = generate_shape(synset, rng)
+    shape = generate_shape(synset, rng, detail)
     complete = sample_outer_surface(shape.parts, complete_points, rng)
     vertices, triangles = shape.mesh()
     partials = DepthScanner(vertices, triangles, camera).random_views(n_views, rng)
@@ -125,8 +139,9 @@ def _make_and_write(args: tuple[str, SynthConfig, tuple[str, str, int]]) -> dict
     """Worker: generate one object and write its files; returns its statistics."""
     root, config, (split, synset, index) = args
     rng = np.random.default_rng(object_seed(config.seed, split, synset, index))
-    obj = generate_object(synset, rng, config.views[split], config.complete_points, config.camera)
-    model_id = model_id_for(config.seed, split, synset, index)
+    detail = np.random.default_rng(detail_seed(config.seed, split, synset, index)) if config.generator >= 2 else None
+    obj = generate_object(synset, rng, config.views[split], config.complete_points, config.camera, detail)
+    model_id = model_id_for(config.seed, split, synset, index, config.generator)
     write_model(root, split, synset, model_id, obj.complete, obj.partials)
     return {"split": split, "synset": synset, "index": index, "model_id": model_id, "subtype": obj.subtype,
             "partial_points": [len(p) for p in obj.partials]}
@@ -182,6 +197,8 @@ def check_config(config: SynthConfig) -> None:
         raise DatasetError("nothing to generate: every split has 0 objects")
     if any(config.views.get(s, 0) < 1 for s in SPLITS):
         raise DatasetError("every split needs at least 1 view per object")
+    if config.generator not in GENERATORS:
+        raise DatasetError(f"unknown generator {config.generator}; choose from {', '.join(map(str, GENERATORS))}")
     unknown = [s for s in config.categories if s not in CATEGORIES]
     if unknown or not config.categories:
         raise DatasetError(f"unknown or no categories: {unknown}")
@@ -252,7 +269,7 @@ def build_metadata(config: SynthConfig, results: list[dict], elapsed_s: float, w
     n_views = sum(len(r["partial_points"]) for r in results)
     return {
         "generator": "escape dataset synth",
-        "generator_version": GENERATOR_VERSION,
+        "generator_version": str(config.generator),
         "escape_version": __version__,
         "seed": config.seed,
         "objects_per_category": dict(config.objects_per_category),

@@ -11,7 +11,7 @@ from typing import Callable
 
 import numpy as np
 
-from escape_cli.data.shapes import airplane, cabinet, car, chair, lamp, sofa, table, watercraft
+from escape_cli.data.shapes import airplane, cabinet, car, chair, lamp, realism, sofa, table, watercraft
 from escape_cli.data.shapes.base import ProceduralShape, build_shape, normalise_to_unit_diagonal
 from escape_cli.errors import DatasetError
 
@@ -39,7 +39,7 @@ SUBTYPES: dict[str, tuple[str, ...]] = {
 }
 
 
-def generate_shape(synset: str, rng: np.random.Generator) -> ProceduralShape:
+def generate_shape(synset: str, rng: np.random.Generator, detail: np.random.Generator | None = None) -> ProceduralShape:
     """Draw one normalised shape of a category.
 
     Parameters
@@ -47,6 +47,9 @@ def generate_shape(synset: str, rng: np.random.Generator) -> ProceduralShape:
     synset : str
         One of the 8 PCN synset ids.
     rng : numpy.random.Generator
+    detail : numpy.random.Generator or None
+        None: generator 1 (convex primitives only). A second stream: generator 2
+        (`realism`: rounded edges, hollow shades, rowing boats, shell chairs).
 
     Returns
     -------
@@ -55,7 +58,10 @@ def generate_shape(synset: str, rng: np.random.Generator) -> ProceduralShape:
     """
     if synset not in GENERATORS:
         raise DatasetError(f"no procedural generator for synset {synset!r}")
-    subtype, point_sets = GENERATORS[synset](rng)
+    if detail is None:
+        subtype, point_sets = GENERATORS[synset](rng)
+    else:
+        subtype, point_sets = realism.generate(synset, rng, detail)
     return build_shape(synset, subtype, point_sets)
 
 
