@@ -16,7 +16,10 @@ def command(
     validate: bool = typer.Option(True, "--validate/--no-validate", help="Score the average on the run's val split."),
     overwrite: bool = OVERWRITE,
 ) -> None:
-    """Average the weights of checkpoints (the same network); keeps the latest one's metadata."""
+    """Average the weights of checkpoints (the same network); keeps the latest one's metadata. Needs the train extra."""
+    from escape_cli.extras import require
+
+    require("torch", "escape average-checkpoints")
     from escape_cli.nn.average import average_checkpoints
 
     state = average_checkpoints(checkpoints, output, overwrite=overwrite, validate=validate)

@@ -32,7 +32,7 @@ def synth(
     overwrite: bool = OVERWRITE,
     json_out: bool = JSON_OUT,
 ) -> None:
-    """Generate procedural shapes of the PCN categories in the PCN folder layout.
+    """Generate procedural shapes of the PCN categories in the PCN folder layout (needs the synth extra: open3d).
 
     Each object: a complete cloud (points on its outer surface) and partial clouds (depth views).
 
@@ -47,6 +47,7 @@ def synth(
     from escape_cli.data.pcn import resolve_categories
     from escape_cli.data.synth import SynthConfig, check_config, prepare_output, synthesize
     from escape_cli.errors import DatasetError
+    from escape_cli.extras import require
 
     if train + val + test == 0:
         raise DatasetError("nothing to generate: give --train, --val and/or --test a positive count (objects per category)")
@@ -58,6 +59,7 @@ def synth(
         complete_points=complete_points,
     )
     check_config(config)
+    require("open3d", "escape dataset synth")  # the synth extra: depth views are ray-cast with open3d
     prepare_output(out, overwrite)  # refuse a non-empty folder before any progress bar shows
     total = len(config.jobs())
     quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)

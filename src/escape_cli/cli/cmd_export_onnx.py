@@ -15,8 +15,12 @@ def command(
     opset: int = typer.Option(17, "--opset", help="ONNX opset version."),
     overwrite: bool = OVERWRITE,
 ) -> None:
-    """Export to ONNX (dynamic batch axis) and check onnxruntime against torch (<= 1e-4)."""
+    """Export to ONNX (dynamic batch axis) and check onnxruntime against torch (<= 1e-4); needs the train extra."""
     from escape_cli.errors import InputFileError
+    from escape_cli.extras import require
+
+    require("torch", "escape export-onnx")
+    require("onnx", "escape export-onnx")
     from escape_cli.nn.export import export_onnx
 
     if output.suffix.lower() != ".onnx":

@@ -30,9 +30,17 @@ def command(
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
 ) -> None:
-    """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
+    """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT.
+
+    Needs the train extra (torch).
+    """
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    from escape_cli.extras import require
+
+    require("torch", "escape train")
+    if init is not None and init.suffix.lower() == ".onnx":
+        require("onnx", "escape train --init MODEL.onnx")
     from escape_cli.nn.config import get_preset
     from escape_cli.nn.train import Trainer, TrainOptions
 
