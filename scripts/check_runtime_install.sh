@@ -54,6 +54,7 @@ mkdir -p "$out"
     || fail "escape complete without --model"
 (cd "$work" && env -u ESCAPE_MODEL "$bin/escape" complete "$repo/examples/car.ply" -o "$out/car.laz" --points 4096) \
     || fail "escape complete to LAZ"
+(cd "$work" && env -u ESCAPE_MODEL "$bin/python" -m escape_cli --version) || fail "python -m escape_cli --version"
 "$bin/python" - "$out" <<'EOF' || fail "the completed clouds"
 import sys
 from pathlib import Path

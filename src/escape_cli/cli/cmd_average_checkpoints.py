@@ -7,7 +7,7 @@ from typing import List
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE
+from escape_cli.cli.options import OVERWRITE, print_summary
 
 
 def command(
@@ -28,4 +28,4 @@ def command(
     metrics = state.get("metrics")
     if metrics:
         line += f"; val CD-L1 x1000 {metrics['val_xyz_cd_l1_x1000']:.3f}"
-    typer.echo(line, err=True)
+    print_summary(line)

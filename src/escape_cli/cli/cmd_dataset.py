@@ -7,7 +7,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import JSON_OUT, OVERWRITE, print_summary
+from escape_cli.cli.options import JSON, OVERWRITE, print_summary
 
 app = typer.Typer(help="Make and inspect training datasets (PCN layout).", no_args_is_help=True)
 
@@ -30,7 +30,7 @@ def synth(
     categories: Optional[List[str]] = CATEGORIES_OPTION,
     complete_points: int = typer.Option(16384, "--complete-points", min=16, help="Points per complete cloud (PCN: 16384)."),
     overwrite: bool = OVERWRITE,
-    json_out: bool = JSON_OUT,
+    json_out: bool = JSON,
 ) -> None:
     """Generate procedural shapes of the PCN categories in the PCN folder layout (needs the synth extra: open3d).
 
@@ -85,7 +85,7 @@ def synth(
 def info(
     root: Path = typer.Argument(..., help="Dataset root in the PCN layout."),
     categories: Optional[List[str]] = CATEGORIES_OPTION,
-    json_out: bool = JSON_OUT,
+    json_out: bool = JSON,
 ) -> None:
     """Count the models and partial views per split and category of a PCN-layout dataset."""
     import json

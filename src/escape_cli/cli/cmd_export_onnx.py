@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE
+from escape_cli.cli.options import OVERWRITE, print_summary
 
 
 def command(
@@ -27,8 +27,7 @@ def command(
         raise InputFileError(f"the model file must end in .onnx, got {output}")
     meta = export_onnx(checkpoint, output, overwrite=overwrite, opset=opset)
     size = output.stat().st_size / 1e6
-    typer.echo(
+    print_summary(
         f"wrote {output} ({size:.1f} MB, {meta['parameters']} parameters) and {output.with_suffix('.json')}; "
-        f"onnxruntime vs torch max |diff| {meta['onnx_parity_max_abs']:.1e}",
-        err=True,
+        f"onnxruntime vs torch max |diff| {meta['onnx_parity_max_abs']:.1e}"
     )

@@ -7,6 +7,8 @@ from typing import List, Optional
 
 import typer
 
+from escape_cli.cli.options import print_summary
+
 
 def command(
     data: Path = typer.Option(..., "--data", help="PCN-layout dataset root (from `escape dataset synth`, or PCN)."),
@@ -32,8 +34,11 @@ def command(
 ) -> None:
     """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT.
 
-    Needs the train extra (torch).
+    Needs the train extra (torch). The progress bar is on stderr (none with -q).
     """
+    import logging
+
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from escape_cli.extras import require
@@ -58,7 +63,8 @@ def command(
         TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
         TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
     ]
-    with Progress(*columns, transient=False) as progress:
+    quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
+    with Progress(*columns, transient=False, console=Console(stderr=True), disable=quiet) as progress:
         task = progress.add_task("train", total=None, info="")
 
         def report(step: int, total: int, loss: float, metrics: dict) -> None:
@@ -67,6 +73,6 @@ def command(
             progress.update(task, completed=step, total=total, info=info)
 
         metrics = trainer.run(report)
-    typer.echo(f"done: step {trainer.step}, best val CD-L1 x1000 {trainer.best:.3f}, run in {out}", err=True)
+    print_summary(f"done: step {trainer.step}, best val CD-L1 x1000 {trainer.best:.3f}, run in {out}")
     if metrics:
-        typer.echo(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()), err=True)
+        print_summary(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()))

@@ -10,12 +10,13 @@ import typer
 
 from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.errors import OutputExistsError
+from escape_cli.formats import FORMAT_LIST
 
 OVERWRITE = typer.Option(False, "--overwrite", help="Replace output files that already exist.")
 FORMAT = typer.Option(
-    None, "--format", "-f", help="File format (ply, pcd, xyz, txt, pts, npy); default: from the extension."
+    None, "--format", "-f", help=f"Output file format ({FORMAT_LIST}); default: from the extension."
 )
-JSON_OUT = typer.Option(False, "--json", help="Print machine-readable JSON on stdout.")
+JSON = typer.Option(False, "--json", help="Print machine-readable JSON lines on stdout.")
 SNAP_RADIUS = typer.Option(
     None, "--snap-radius", min=0.0,
     help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",
@@ -41,7 +42,7 @@ ANCHOR_RADIUS = typer.Option(
 )
 ANCHOR_KNN = typer.Option(ANCHOR_DEFAULTS.knn, "--knn", help="Neighbours for the curvature estimate.")
 INPUT_FORMAT = typer.Option(
-    None, "--input-format", help="Input file format; default: from the extension (sniffed for stdin)."
+    None, "--input-format", help=f"Input file format ({FORMAT_LIST}); default: from the extension (sniffed for stdin)."
 )
 ASCII = typer.Option(False, "--ascii", help="Write PLY/PCD with a text body instead of binary.")
 
