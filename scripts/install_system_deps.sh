@@ -1,7 +1,17 @@
 #!/usr/bin/env bash
-# Install the system libraries open3d needs, where they are missing (Debian/Ubuntu).
+# Install the system libraries the package's extras need, where they are missing (Debian/Ubuntu).
+# Usage: bash scripts/install_system_deps.sh [EXTRA...]     e.g. synth
+#   (no extra)  the runtime (numpy, scipy, onnxruntime, laspy/lazrs) needs no system library
+#   synth       open3d loads libGL, libEGL, libX11, libusb, libudev and libgomp
 set -euo pipefail
-needed=(libusb-1.0-0 libgl1 libegl1 libx11-6 libgomp1)
+needed=()
+for extra in "$@"; do
+    case "$extra" in
+        synth) needed+=(libgl1 libegl1 libx11-6 libusb-1.0-0 libudev1 libgomp1) ;;
+        train | test | h5) ;;  # pip wheels only
+        *) echo "escape: unknown extra '$extra' (synth, train, h5, test)" >&2; exit 2 ;;
+    esac
+done
 missing=()
 for pkg in "${needed[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

@@ -13,6 +13,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "escape_cli"
 LAYERS = {
     "escape_cli.errors": 0,
     "escape_cli.version": 0,
+    "escape_cli.formats": 0,
+    "escape_cli.extras": 1,
     "escape_cli.core": 1,
     "escape_cli.io": 2,
     "escape_cli.data": 3,

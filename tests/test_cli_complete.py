@@ -125,3 +125,50 @@ def test_corrupt_or_missing_model(scan, tmp_path, tiny_model):
     (tmp_path / "bad.json").write_text(json.dumps({"k": 8, "input_points": 256, "output_points": 256}))
     res = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", bad)
     assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "model" in res.stderr
+
+
+def test_utm_laz_scan_keeps_its_observed_points_to_the_millimetre(tmp_path, rng, tiny_model):
+    """A LiDAR crop in UTM metres (x ~ 5e5, y ~ 4e6), as LAZ on a 1 mm grid, completed to LAZ and PLY."""
+    laspy = pytest.importorskip("laspy")
+    utm = np.array([512_345.678, 4_012_345.678, 87.5])
+    scan = np.round(utm + 2.0 * partial_cloud(rng, 600), 3)  # a 2 m object
+    src = tmp_path / "crop.laz"
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = np.full(3, 0.001), np.array([512_000.0, 4_012_000.0, 0.0])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = scan.T
+    las.intensity = np.arange(len(scan))
+    las.write(str(src))
+
+    out = tmp_path / "done.laz"
+    res = run_escape("complete", src, "-o", out, "--model", tiny_model, "--residuals")
+    assert res.exit_code == 0, res.stderr
+    points, fields = read_point_fields(out)
+    observed = points[fields["observed"] == 1.0]
+    assert len(observed) > 0
+    gap = np.min(np.linalg.norm(observed[:, None] - scan[None], axis=2), axis=1)  # to the nearest input point
+    assert gap.max() < 1e-3  # within 1 mm (on the input's own grid: exact)
+    assert gap.max() < 1e-9
+    written = laspy.read(str(out)).header
+    assert written.scales.tolist() == [0.001] * 3 and written.offsets.tolist() == [512_000.0, 4_012_000.0, 0.0]
+    predicted = points[fields["observed"] == 0.0]
+    assert np.abs(predicted - scan.mean(axis=0)).max() < 50  # in the scan's frame, metres
+
+    ply = tmp_path / "done.ply"  # float64 coordinates where float32 would lose the millimetres
+    res = run_escape("complete", src, "-o", ply, "--model", tiny_model, "--residuals")
+    assert res.exit_code == 0, res.stderr
+    assert b"property double x" in ply.read_bytes()[:300]
+    points, fields = read_point_fields(ply)
+    observed = points[fields["observed"] == 1.0]
+    assert np.min(np.linalg.norm(observed[:, None] - scan[None], axis=2), axis=1).max() < 1e-3
+
+
+def test_utm_scan_through_the_python_api(rng, tiny_model):
+    from escape_cli import complete
+
+    utm = np.array([512_345.678, 4_012_345.678, 87.5])
+    scan = utm + 2.0 * partial_cloud(rng, 600)
+    result = complete(scan, tiny_model)
+    observed = result.points[result.is_observed]
+    assert result.points.dtype == np.float64 and len(observed) > 0
+    assert np.min(np.linalg.norm(observed[:, None] - scan[None], axis=2), axis=1).max() < 1e-3

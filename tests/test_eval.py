@@ -25,7 +25,7 @@ def tiny_tree(tmp_path_factory):
 def test_pcn_table_and_json_match_brute_force(tiny_tree, tiny_model, tmp_path):
     report_path, saved = tmp_path / "report.json", tmp_path / "saved"
     res = run_escape("eval", "--dataset", "pcn", "--root", tiny_tree, "--model", tiny_model, "--rotate",
-                     "--json", report_path, "--save", saved)
+                     "--json-out", report_path, "--save", saved)
     assert res.exit_code == 0, res.stderr
     table = res.stdout.decode()
     for word in ("chair", "table", "average", "CD-L1", "rot gap"):
@@ -53,7 +53,7 @@ def test_pcn_table_and_json_match_brute_force(tiny_tree, tiny_model, tmp_path):
 
 def test_limit_noise_and_drop(tiny_tree, tiny_model, tmp_path):
     res = run_escape("eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "--noise", "0.002",
-                     "--drop", "0.25", "--categories", "chair", "--json", tmp_path / "r.json", "--no-baseline")
+                     "--drop", "0.25", "--categories", "chair", "--json-out", tmp_path / "r.json", "--no-baseline")
     assert res.exit_code == 0, res.stderr
     report = json.loads((tmp_path / "r.json").read_text())
     assert list(report["categories"]) == ["chair"] and report["average"]["count"] == 1
@@ -87,7 +87,7 @@ def test_kitti_fidelity_and_mmd(realdata_dir, tiny_model, tmp_path):
 
     write_points(refs / "box_car.ply", box)
     res = run_escape("eval", "--dataset", "kitti", "--root", realdata_dir / "kitti_cars", "--model", tiny_model,
-                     "--reference", refs, "--json", tmp_path / "k.json")
+                     "--reference", refs, "--json-out", tmp_path / "k.json")
     assert res.exit_code == 0, res.stderr
     report = json.loads((tmp_path / "k.json").read_text())
     assert len(report["cars"]) == 6
@@ -99,7 +99,7 @@ def test_kitti_fidelity_and_mmd(realdata_dir, tiny_model, tmp_path):
 def test_json_report_is_not_overwritten_without_flag(tiny_tree, tiny_model, tmp_path):
     report = tmp_path / "r.json"
     report.write_text("keep")
-    args = ["eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair", "--json", report]
+    args = ["eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair", "--json-out", report]
     res = run_escape(*args)
     assert res.exit_code != 0 and "--overwrite" in res.stderr and report.read_text() == "keep"
     assert run_escape(*args, "--overwrite").exit_code == 0
@@ -116,7 +116,7 @@ def test_pairs_folder_scores_every_pair_with_its_ratio(tiny_model, tmp_path, rng
         write_points(folder / f"{name}_complete.ply", complete_cloud)
         write_points(folder / f"{name}_partial.pcd", complete_cloud[complete_cloud[:, 0] > 0][:500])
     (folder / "notes.txt").write_text("not a cloud pair\n")  # other files are ignored
-    res = run_escape("eval", "--dataset", "pairs", "--root", folder, "--model", tiny_model, "--json", tmp_path / "r.json")
+    res = run_escape("eval", "--dataset", "pairs", "--root", folder, "--model", tiny_model, "--json-out", tmp_path / "r.json")
     assert res.exit_code == 0, res.stderr
     assert "escape / input" in res.stdout.decode()
     report = json.loads((tmp_path / "r.json").read_text())
@@ -139,3 +139,16 @@ def test_pairs_folder_needs_complete_pairs(tiny_model, tmp_path):
     res = run_escape("eval", "--dataset", "pairs", "--root", folder, "--model", tiny_model)
     assert res.exit_code == 1 and len(res.stderr_lines) == 1
     assert "lonely_partial.ply has no lonely_complete" in res.stderr
+
+
+def test_json_flag_prints_the_report_as_one_line(tiny_tree, tiny_model, tmp_path):
+    """--json is the same flag as in every command: JSON lines on stdout (the table moves to stderr)."""
+    out = tmp_path / "r.json"
+    res = run_escape("eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair",
+                     "--json", "--json-out", out)
+    assert res.exit_code == 0, res.stderr
+    lines = res.stdout.decode().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0]) == json.loads(out.read_text())
+    assert "CD-L1" in res.stderr
+    quiet = run_escape("-q", "eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair", "--json")
+    assert quiet.exit_code == 0 and quiet.stderr == "" and len(quiet.stdout.decode().splitlines()) == 1

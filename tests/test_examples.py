@@ -42,7 +42,7 @@ def test_pipeline_script_completes_a_folder_and_reports_a_bad_file(tmp_path, rng
     assert not (tmp_path / "out" / "bad.ply").exists()
 
 
-@pytest.mark.skipif(not (REPO / "models" / "escape-small.onnx").exists(), reason="no shipped model")
+@pytest.mark.skipif(not (REPO / "src" / "escape_cli" / "models" / "escape-small.onnx").exists(), reason="no shipped model")
 @pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 def test_demo_script(tmp_path):
     run = subprocess.run(["bash", str(REPO / "examples" / "demo.sh"), str(tmp_path / "demo")],

@@ -1,4 +1,4 @@
-"""The shipped model in models/: metadata, size, and completion of every real scan."""
+"""The shipped model (package data in src/escape_cli/models/): metadata, size, and completion of every real scan."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from conftest import REPO, realdata_clouds, realdata_id
 
-MODEL = REPO / "models" / "escape-small.onnx"
+MODEL = REPO / "src" / "escape_cli" / "models" / "escape-small.onnx"
 
 pytestmark = pytest.mark.skipif(not MODEL.exists(), reason=f"no shipped model at {MODEL}")
 
@@ -20,13 +20,16 @@ def test_model_card_and_metadata():
     assert meta["k"] == 8 and meta["input_points"] == 2048
     assert meta["normalization"]["target_radius"] > 0
     assert meta["training"]["train_objects"] > 0 and meta["validation"]
-    assert (REPO / "models" / "README.md").exists()
+    assert (REPO / "models" / "README.md").exists()  # the model card stays beside the curve
 
 
-def test_shipped_model_is_the_default():
+def test_shipped_model_is_the_default(monkeypatch):
     from escape_cli.inference import default_model_path
 
+    monkeypatch.delenv("ESCAPE_MODEL", raising=False)
     assert default_model_path().resolve() == MODEL.resolve()
+    monkeypatch.setenv("ESCAPE_MODEL", "/elsewhere/m.onnx")
+    assert str(default_model_path()) == "/elsewhere/m.onnx"
 
 
 @pytest.mark.parametrize("path", realdata_clouds(), ids=realdata_id)

@@ -55,17 +55,20 @@ def test_resume_continues_where_it_stopped(tiny_tree, tmp_path):
 
 
 def test_train_and_export_through_the_cli(tiny_tree, tmp_path):
-    from typer.testing import CliRunner
+    """Through `main()`, as the console script runs: progress and messages on stderr, nothing on stdout."""
+    from cli_runner import run_escape
 
-    from escape_cli.cli.main import app
-
-    runner = CliRunner()
     out = tmp_path / "run"
-    res = runner.invoke(app, ["train", "--data", str(tiny_tree), "--out", str(out), "--config", "tiny",
-                              "--epochs", "1", "--batch", "2", "--workers", "1", "--val-limit", "4"])
-    assert res.exit_code == 0, res.output
-    res = runner.invoke(app, ["export-onnx", str(out / "best.pt"), "-o", str(tmp_path / "m.onnx")])
-    assert res.exit_code == 0, res.output
+    res = run_escape("train", "--data", tiny_tree, "--out", out, "--config", "tiny",
+                     "--epochs", "1", "--batch", "2", "--workers", "1", "--val-limit", "4")
+    assert res.exit_code == 0, res.stderr
+    assert res.stdout == b"" and "done: step" in res.stderr
+    res = run_escape("-q", "export-onnx", out / "best.pt", "-o", tmp_path / "m.onnx")
+    assert res.exit_code == 0, res.stderr
+    assert res.stdout == b"" and res.stderr == ""
+    res = run_escape("-q", "train", "--data", tiny_tree, "--out", tmp_path / "quiet", "--config", "tiny",
+                     "--epochs", "1", "--batch", "2", "--workers", "1", "--val-limit", "4", "--max-steps", "1")
+    assert res.exit_code == 0 and res.stdout == b"" and res.stderr == ""  # -q: no progress bar, no summary
     meta = json.loads((tmp_path / "m.json").read_text())
     assert meta["training"]["train_objects"] == 4
     assert meta["frame"] == {"kind": "partial", "rows": 256, "radius": 0.28}

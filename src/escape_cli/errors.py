@@ -43,3 +43,7 @@ class DatasetError(EscapeError):
 
 class OutputFileError(EscapeError):
     """An output cannot be written: missing directory, no permission, not a file."""
+
+
+class MissingDependencyError(EscapeError):
+    """An optional library (an extra of the package) that a command needs is not installed."""

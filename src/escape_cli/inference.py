@@ -6,6 +6,7 @@ import hashlib
 import json
 import os
 from functools import lru_cache
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -18,15 +19,19 @@ MODEL_ENV = "ESCAPE_MODEL"
 
 
 def default_model_path() -> Path:
-    """The model `escape complete` uses without `--model`: $ESCAPE_MODEL, else models/escape-small.onnx."""
+    """The model `escape complete` uses without `--model`.
+
+    $ESCAPE_MODEL when set, else the model shipped inside the package
+    (``escape_cli/models/escape-small.onnx``, package data found with `importlib.resources`).
+    """
     if os.environ.get(MODEL_ENV):
         return Path(os.environ[MODEL_ENV])
-    here = Path(__file__).resolve()
-    for parent in here.parents:
-        candidate = parent / "models" / DEFAULT_MODEL_NAME
-        if candidate.exists():
-            return candidate
-    raise ModelError(f"no model found: pass --model or set {MODEL_ENV} (looked for models/{DEFAULT_MODEL_NAME})")
+    resource = resources.files("escape_cli") / "models" / DEFAULT_MODEL_NAME
+    if not isinstance(resource, Path):  # a package imported from a zip: onnxruntime needs a real file
+        raise ModelError(f"the shipped model is not on the file system ({resource}); pass --model or set {MODEL_ENV}")
+    if not resource.is_file():
+        raise ModelError(f"no model found: {resource} is missing (pass --model or set {MODEL_ENV})")
+    return resource
 
 
 class CompletionModel:

@@ -84,7 +84,7 @@ def complete_file(job: CompletionJob, settings: CompletionJob.Settings) -> dict:
             keep_input=settings.keep_input, snap_radius=settings.snap_radius, solver=settings.solver, threads=settings.threads,
         )
     fields = {"residual": result.residuals, "observed": result.is_observed.astype("float32")} if settings.residuals else None
-    write_points(job.output, result.points, out_fmt, overwrite=settings.overwrite, fields=fields)
+    write_points(job.output, result.points, out_fmt, overwrite=settings.overwrite, fields=fields, like=job.source)
     if job.anchors:
         write_points(job.anchors, result.anchors, overwrite=settings.overwrite)
     return {

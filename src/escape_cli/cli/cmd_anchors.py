@@ -14,7 +14,7 @@ from escape_cli.cli.options import (
     ASCII,
     FORMAT,
     INPUT_FORMAT,
-    JSON_OUT,
+    JSON,
     OVERWRITE,
     check_output,
     errors_about,
@@ -35,7 +35,7 @@ def command(
     input_format: Optional[str] = INPUT_FORMAT,
     ascii_body: bool = ASCII,
     overwrite: bool = OVERWRITE,
-    json_out: bool = JSON_OUT,
+    json_out: bool = JSON,
 ) -> None:
     """Choose the anchors of a cloud (deterministic FPS, refined towards high curvature).
 

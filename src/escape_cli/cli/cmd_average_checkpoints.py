@@ -7,7 +7,7 @@ from typing import List
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE
+from escape_cli.cli.options import OVERWRITE, print_summary
 
 
 def command(
@@ -16,7 +16,10 @@ def command(
     validate: bool = typer.Option(True, "--validate/--no-validate", help="Score the average on the run's val split."),
     overwrite: bool = OVERWRITE,
 ) -> None:
-    """Average the weights of checkpoints (the same network); keeps the latest one's metadata."""
+    """Average the weights of checkpoints (the same network); keeps the latest one's metadata. Needs the train extra."""
+    from escape_cli.extras import require
+
+    require("torch", "escape average-checkpoints")
     from escape_cli.nn.average import average_checkpoints
 
     state = average_checkpoints(checkpoints, output, overwrite=overwrite, validate=validate)
@@ -25,4 +28,4 @@ def command(
     metrics = state.get("metrics")
     if metrics:
         line += f"; val CD-L1 x1000 {metrics['val_xyz_cd_l1_x1000']:.3f}"
-    typer.echo(line, err=True)
+    print_summary(line)

@@ -14,7 +14,7 @@ from escape_cli.cli.options import FORMAT, INPUT_FORMAT, NORMALIZE_HELP, OVERWRI
 def command(
     inputs: List[str] = typer.Argument(..., help="Partial clouds: files, folders, globs, or '-' for stdin."),
     output: str = typer.Option(..., "--output", "-o", help="Output file (one input), folder (several), or '-'."),
-    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: models/escape-small.onnx)."),
+    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: $ESCAPE_MODEL, else the model shipped in the package)."),
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     points: int = typer.Option(16384, "--points", "-n", min=1, help="Points in each completed cloud."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),

@@ -7,7 +7,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import JSON_OUT, OVERWRITE, print_summary
+from escape_cli.cli.options import JSON, OVERWRITE, print_summary
 
 app = typer.Typer(help="Make and inspect training datasets (PCN layout).", no_args_is_help=True)
 
@@ -34,9 +34,9 @@ def synth(
         help="Shape generator: 2 (rounded edges, hollow shades, rowing boats, shell chairs) or 1 (convex primitives only, the first models' data).",
     ),
     overwrite: bool = OVERWRITE,
-    json_out: bool = JSON_OUT,
+    json_out: bool = JSON,
 ) -> None:
-    """Generate procedural shapes of the PCN categories in the PCN folder layout.
+    """Generate procedural shapes of the PCN categories in the PCN folder layout (needs the synth extra: open3d).
 
     Each object: a complete cloud (points on its outer surface) and partial clouds (depth views).
 
@@ -51,6 +51,7 @@ def synth(
     from escape_cli.data.pcn import resolve_categories
     from escape_cli.data.synth import SynthConfig, check_config, prepare_output, synthesize
     from escape_cli.errors import DatasetError
+    from escape_cli.extras import require
 
     if train + val + test == 0:
         raise DatasetError("nothing to generate: give --train, --val and/or --test a positive count (objects per category)")
@@ -63,6 +64,7 @@ def synth(
         generator=generator,
     )
     check_config(config)
+    require("open3d", "escape dataset synth")  # the synth extra: depth views are ray-cast with open3d
     prepare_output(out, overwrite)  # refuse a non-empty folder before any progress bar shows
     total = len(config.jobs())
     quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
@@ -88,7 +90,7 @@ def synth(
 def info(
     root: Path = typer.Argument(..., help="Dataset root in the PCN layout."),
     categories: Optional[List[str]] = CATEGORIES_OPTION,
-    json_out: bool = JSON_OUT,
+    json_out: bool = JSON,
 ) -> None:
     """Count the models and partial views per split and category of a PCN-layout dataset."""
     import json

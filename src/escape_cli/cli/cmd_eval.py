@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
+from escape_cli.cli.options import JSON, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
 
 
 def command(
@@ -31,11 +31,18 @@ def command(
     snap_radius: Optional[float] = SNAP_RADIUS,
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
-    json_path: Optional[Path] = typer.Option(None, "--json", help="Write every number to this JSON file."),
+    json_lines: bool = JSON,
+    json_path: Optional[Path] = typer.Option(None, "--json-out", help="Write every number to this JSON file."),
     save: Optional[Path] = typer.Option(None, "--save", help="Write every completion (PLY) under this folder."),
     overwrite: bool = OVERWRITE,
 ) -> None:
-    """Score completions: CD-L1 / CD-L2 x 1000 and F-Score@1% per category (PCN), or Fidelity and MMD (KITTI)."""
+    """Score completions: CD-L1 / CD-L2 x 1000 and F-Score@1% per category (PCN), or Fidelity and MMD (KITTI).
+
+    The table goes to stdout; with --json the report goes there as one JSON line and the
+    table to stderr.
+    """
+    import logging
+
     from rich.console import Console
 
     from escape_cli.cli.options import check_output
@@ -68,7 +75,9 @@ def command(
     completers = {"escape": escape_completer}
     if baseline:
         completers["input"] = lambda points: points
-    console = Console(stderr=True)
+    quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
+    console = Console(stderr=True, quiet=quiet)
+    table_stream = None if quiet and json_lines else (sys.stderr if json_lines else sys.stdout)
     settings = {
         "dataset": dataset, "root": str(root), "model": str(net.path), "rotate": rotate, "seed": seed,
         "keep_input": keep_input, "snap_radius": DEFAULT_SNAP_RADIUS if snap_radius is None else snap_radius, "normalize": normalize,
@@ -89,17 +98,19 @@ def command(
         )
     if dataset in ("pcn", "pair", "pairs"):
         summary = result.summary()
-        _print_pcn_table(summary, list(completers), rotate)
+        _print_pcn_table(summary, list(completers), rotate, table_stream)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}
     else:
         refs = _read_references(reference) if reference else None
         report = evaluate_kitti(root, completers, reference=refs, rotate=rotate, seed=seed, save_dir=save)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **report}
-        _print_kitti_table(report)
+        _print_kitti_table(report, table_stream)
     if json_path is not None:
         from escape_cli.io.files import write_output_bytes
 
         write_output_bytes(json_path, (json.dumps(report, indent=1) + "\n").encode(), overwrite=overwrite)
+    if json_lines:
+        print(json.dumps(report), flush=True)
 
 
 def _read_references(folder: Path):
@@ -109,7 +120,9 @@ def _read_references(folder: Path):
     return [read_points(p) for p in expand_inputs([str(folder)], recursive=True)]
 
 
-def _print_pcn_table(summary: dict, methods: list[str], rotate: bool) -> None:
+def _print_pcn_table(summary: dict, methods: list[str], rotate: bool, stream) -> None:
+    if stream is None:
+        return
     from rich.console import Console
     from rich.table import Table
 
@@ -150,10 +163,12 @@ def _print_pcn_table(summary: dict, methods: list[str], rotate: bool) -> None:
     for name, stats in summary["categories"].items():
         table.add_row(*row(name, stats))
     table.add_row(*row("[bold]average", summary["average"]))
-    Console(file=sys.stdout, width=max(120, 14 * len(table.columns))).print(table)
+    Console(file=stream, width=max(120, 14 * len(table.columns))).print(table)
 
 
-def _print_kitti_table(report: dict) -> None:
+def _print_kitti_table(report: dict, stream) -> None:
+    if stream is None:
+        return
     from rich.console import Console
     from rich.table import Table
 
@@ -166,4 +181,4 @@ def _print_kitti_table(report: dict) -> None:
     for rec in report["cars"]:
         table.add_row(rec["car"], str(rec["input_points"]), *[f"{rec['metrics'][k]:.3f}" for k in keys])
     table.add_row("[bold]mean", "", *[f"{report['average'][k + '_mean']:.3f}" for k in keys])
-    Console(file=sys.stdout, width=max(120, 16 * len(table.columns))).print(table)
+    Console(file=stream, width=max(120, 16 * len(table.columns))).print(table)

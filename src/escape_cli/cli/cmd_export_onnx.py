@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from escape_cli.cli.options import OVERWRITE
+from escape_cli.cli.options import OVERWRITE, print_summary
 
 
 def command(
@@ -15,16 +15,19 @@ def command(
     opset: int = typer.Option(17, "--opset", help="ONNX opset version."),
     overwrite: bool = OVERWRITE,
 ) -> None:
-    """Export to ONNX (dynamic batch axis) and check onnxruntime against torch (<= 1e-4)."""
+    """Export to ONNX (dynamic batch axis) and check onnxruntime against torch (<= 1e-4); needs the train extra."""
     from escape_cli.errors import InputFileError
+    from escape_cli.extras import require
+
+    require("torch", "escape export-onnx")
+    require("onnx", "escape export-onnx")
     from escape_cli.nn.export import export_onnx
 
     if output.suffix.lower() != ".onnx":
         raise InputFileError(f"the model file must end in .onnx, got {output}")
     meta = export_onnx(checkpoint, output, overwrite=overwrite, opset=opset)
     size = output.stat().st_size / 1e6
-    typer.echo(
+    print_summary(
         f"wrote {output} ({size:.1f} MB, {meta['parameters']} parameters) and {output.with_suffix('.json')}; "
-        f"onnxruntime vs torch max |diff| {meta['onnx_parity_max_abs']:.1e}",
-        err=True,
+        f"onnxruntime vs torch max |diff| {meta['onnx_parity_max_abs']:.1e}"
     )

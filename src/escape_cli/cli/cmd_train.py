@@ -7,6 +7,8 @@ from typing import List, Optional
 
 import typer
 
+from escape_cli.cli.options import print_summary
+
 
 def command(
     data: Path = typer.Option(..., "--data", help="PCN-layout dataset root (from `escape dataset synth`, or PCN)."),
@@ -30,9 +32,20 @@ def command(
     max_steps: Optional[int] = typer.Option(None, "--max-steps", help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
 ) -> None:
-    """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT."""
+    """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT.
+
+    Needs the train extra (torch). The progress bar is on stderr (none with -q).
+    """
+    import logging
+
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    from escape_cli.extras import require
+
+    require("torch", "escape train")
+    if init is not None and init.suffix.lower() == ".onnx":
+        require("onnx", "escape train --init MODEL.onnx")
     from escape_cli.nn.config import get_preset
     from escape_cli.nn.train import Trainer, TrainOptions
 
@@ -50,7 +63,8 @@ def command(
         TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
         TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
     ]
-    with Progress(*columns, transient=False) as progress:
+    quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
+    with Progress(*columns, transient=False, console=Console(stderr=True), disable=quiet) as progress:
         task = progress.add_task("train", total=None, info="")
 
         def report(step: int, total: int, loss: float, metrics: dict) -> None:
@@ -59,6 +73,6 @@ def command(
             progress.update(task, completed=step, total=total, info=info)
 
         metrics = trainer.run(report)
-    typer.echo(f"done: step {trainer.step}, best val CD-L1 x1000 {trainer.best:.3f}, run in {out}", err=True)
+    print_summary(f"done: step {trainer.step}, best val CD-L1 x1000 {trainer.best:.3f}, run in {out}")
     if metrics:
-        typer.echo(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()), err=True)
+        print_summary(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()))

@@ -1,7 +1,9 @@
 """Entry point of the `escape` command: the Typer app, global options, error handling.
 
 Each subcommand lives in its own module `cmd_<name>.py`; heavy libraries are imported
-inside the command bodies so that `escape --help` stays fast.
+inside the command bodies so that `escape --help` stays fast. `python -m escape_cli` runs
+the same `main()`; `escape --install-completion` installs shell completion (bash, zsh,
+fish, PowerShell).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ app = typer.Typer(
     name="escape",
     help="Rotation-equivariant completion of partial point clouds (ESCAPE).",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
     context_settings={"help_option_names": ["-h", "--help"]},
 )
@@ -71,6 +73,7 @@ app.add_typer(cmd_dataset.app, name="dataset")
 
 
 GLOBAL_OPTIONS = ("-q", "--quiet", "-v", "-vv", "-vvv", "--verbose", "--version")
+PROG_NAME = "escape"  # also under `python -m escape_cli`: usage lines, and the completion variable _ESCAPE_COMPLETE
 
 
 def usage_error_line(err: typer.TyperException) -> str:
@@ -98,7 +101,7 @@ def usage_error_line(err: typer.TyperException) -> str:
 def main() -> None:
     """Run the CLI; turn usage errors and escape's own errors into one line and an exit code."""
     try:
-        code = app(standalone_mode=False)
+        code = app(standalone_mode=False, prog_name=PROG_NAME)
     except typer.Abort:
         print("escape: interrupted", file=sys.stderr)
         sys.exit(130)

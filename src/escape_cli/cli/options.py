@@ -10,12 +10,13 @@ import typer
 
 from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.errors import OutputExistsError
+from escape_cli.formats import FORMAT_LIST
 
 OVERWRITE = typer.Option(False, "--overwrite", help="Replace output files that already exist.")
 FORMAT = typer.Option(
-    None, "--format", "-f", help="File format (ply, pcd, xyz, txt, pts, npy); default: from the extension."
+    None, "--format", "-f", help=f"Output file format ({FORMAT_LIST}); default: from the extension."
 )
-JSON_OUT = typer.Option(False, "--json", help="Print machine-readable JSON on stdout.")
+JSON = typer.Option(False, "--json", help="Print machine-readable JSON lines on stdout.")
 NORMALIZE_HELP = (
     "auto: each scan is completed in its own frame (centre and size from the scan; any units, mapped back exactly); "
     "none: feed coordinates as they are (only for older models trained in absolute PCN units)."
@@ -45,7 +46,7 @@ ANCHOR_RADIUS = typer.Option(
 )
 ANCHOR_KNN = typer.Option(ANCHOR_DEFAULTS.knn, "--knn", help="Neighbours for the curvature estimate.")
 INPUT_FORMAT = typer.Option(
-    None, "--input-format", help="Input file format; default: from the extension (sniffed for stdin)."
+    None, "--input-format", help=f"Input file format ({FORMAT_LIST}); default: from the extension (sniffed for stdin)."
 )
 ASCII = typer.Option(False, "--ascii", help="Write PLY/PCD with a text body instead of binary.")
 

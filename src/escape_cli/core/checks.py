@@ -1,7 +1,11 @@
 """The one boundary check of the package: coerce and validate arrays and parameters.
 
 Every public function that takes points, distances or anchors calls `as_points` or
-`as_rows` first; what is below it trusts its input. Bad arrays raise `PointCloudError`
+`as_rows` first; what is below it trusts its input. Any array-like is accepted, and so
+are point-cloud objects of other libraries, by duck typing (nothing is imported): an
+object with a ``points`` attribute (`open3d.geometry.PointCloud`, escape's own results)
+or a ``vertices`` attribute (`trimesh.PointCloud`, `trimesh.Trimesh`) stands for that
+array. Bad arrays raise `PointCloudError`
 with one wording (scalar parameters are checked by `escape_cli.core.params`):
 
     "<name> must be an array of numbers (got str)"
@@ -18,6 +22,9 @@ import numpy as np
 
 from escape_cli.errors import DegenerateGeometryError, PointCloudError
 
+CLOUD_ATTRIBUTES = ("points", "vertices")
+"""Attributes that hold the (N, 3) array of a point-cloud object (open3d, trimesh)."""
+
 MAX_MAGNITUDE = 1e150
 """Largest usable |value|: its square (a squared distance) must stay finite in float64."""
 
@@ -32,7 +39,7 @@ def as_rows(values, name: str, columns: int | None = 3, min_rows: int = 0, lette
 
     Parameters
     ----------
-    values : array_like
+    values : array_like, or an object with a ``points`` / ``vertices`` array attribute
     name : str
         What the array is, for the message ("input cloud", "anchors", "distances").
     columns : int or None
@@ -89,7 +96,23 @@ def check_not_collinear(points: np.ndarray, name: str = "the points") -> None:
         )
 
 
+def _unwrap_cloud(values):
+    """The array inside a point-cloud object (its ``points``, else ``vertices``), else `values` itself.
+
+    open3d's ``PointCloud.points`` is a ``Vector3dVector`` and trimesh's
+    ``PointCloud.vertices`` a ``TrackedArray``: both become arrays under `np.asarray`.
+    """
+    if isinstance(values, (np.ndarray, list, tuple, str, bytes)):
+        return values
+    for attribute in CLOUD_ATTRIBUTES:
+        inner = getattr(values, attribute, None)
+        if inner is not None and not callable(inner):
+            return inner
+    return values
+
+
 def _numeric(values, name: str) -> np.ndarray:
+    values = _unwrap_cloud(values)
     if isinstance(values, (str, bytes)):
         raise PointCloudError(f"{name} must be an array of numbers (got {type(values).__name__})")
     try:

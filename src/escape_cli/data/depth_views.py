@@ -60,8 +60,9 @@ class DepthScanner:
     """
 
     def __init__(self, vertices: np.ndarray, triangles: np.ndarray, camera: DepthCamera = DepthCamera()):
-        import open3d as o3d
+        from escape_cli.extras import require
 
+        o3d = require("open3d", "rendering depth views (escape dataset synth)")
         self.camera = camera
         self._o3d = o3d
         self._scene = o3d.t.geometry.RaycastingScene()

@@ -1,4 +1,4 @@
-"""Point-cloud files: read and write PLY, PCD, text (xyz/txt/pts/csv) and NumPy clouds.
+"""Point-cloud files: read and write PLY, PCD, text (xyz/txt/pts/csv), NumPy, LAS/LAZ and HDF5 clouds.
 
 `read_points` / `read_point_fields` return float64 coordinates with non-finite rows
 dropped (and counted in a warning); `write_points` writes atomically and never
@@ -7,8 +7,13 @@ is then sniffed from the bytes) and stdout for writers (binary PLY unless a form
 given). Every problem is an `escape_cli.errors` exception with a one-line message that
 names the file.
 
+Coordinates are written as float32 unless float32 would round them by more than a small
+share of the cloud's size (`coordinate_dtype_for`: far from the origin, e.g. UTM metres);
+LAS/LAZ store scaled integers instead (`escape_cli.io.las`).
+
 One module per format does the parsing and serialising on bytes: `ply`, `pcd`,
-`text`, `npy` (with `lzf` for compressed PCD); `files` moves the bytes.
+`text`, `npy` (with `lzf` for compressed PCD), `las` (LAS and LAZ), `h5`; `files` moves
+the bytes. The format names are in `escape_cli.formats`.
 """
 
 from __future__ import annotations
@@ -21,16 +26,20 @@ import numpy as np
 
 from escape_cli.core.checks import as_points
 from escape_cli.errors import InputFileError, PointCloudError
-from escape_cli.io.common import Fields
+from escape_cli.formats import CLOUD_SUFFIXES, FORMAT_LIST, FORMATS
+from escape_cli.io.common import Fields, coordinate_dtype_for
 from escape_cli.io.files import display_name, is_stdio, read_input_bytes, write_output_bytes
+from escape_cli.io.h5 import is_h5, parse_h5, serialize_h5
+from escape_cli.io.las import is_las, parse_las, serialize_las, template_layout
 from escape_cli.io.npy import is_npy, is_npz, parse_array, parse_npy, serialize_array, serialize_npy, serialize_npz
 from escape_cli.io.pcd import is_pcd, parse_pcd, serialize_pcd
 from escape_cli.io.ply import is_ply, parse_ply, serialize_ply
-from escape_cli.io.text import TEXT_FORMATS, parse_text, serialize_text
+from escape_cli.io.text import parse_text, serialize_text
 
 __all__ = [
     "CLOUD_SUFFIXES",
     "FORMATS",
+    "coordinate_dtype_for",
     "display_name",
     "format_from_path",
     "is_stdio",
@@ -45,9 +54,6 @@ __all__ = [
 
 log = logging.getLogger("escape")
 
-FORMATS = ("ply", "pcd", *TEXT_FORMATS, "npy", "npz")
-CLOUD_SUFFIXES = tuple(f".{fmt}" for fmt in FORMATS)
-"""File name endings of point-cloud files (what a folder input is searched for)."""
 STDOUT_DEFAULT_FORMAT = "ply"
 COORDINATE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 FIELD_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -75,14 +81,18 @@ def format_from_path(path: str | Path) -> str:
     if fmt in FORMATS:
         return fmt
     if not suffix:
-        raise InputFileError(f"cannot tell the format of {path} (no extension); use --format ({', '.join(FORMATS)})")
-    raise InputFileError(f"unknown format '{suffix}' for {path}; use --format ({', '.join(FORMATS)})")
+        raise InputFileError(f"cannot tell the format of {path} (no extension); use --format ({FORMAT_LIST})")
+    raise InputFileError(f"unknown format '{suffix}' for {path}; use --format ({FORMAT_LIST})")
 
 
 def sniff_format(data: bytes) -> str:
-    """Guess a cloud's format from its first bytes: ply, pcd, npy, npz, else xyz (text)."""
+    """Guess a cloud's format from its first bytes: ply, pcd, npy, npz, las (LAS or LAZ), h5, else xyz (text)."""
     if is_ply(data):
         return "ply"
+    if is_las(data):
+        return "las"
+    if is_h5(data):
+        return "h5"
     if is_npy(data):
         return "npy"
     if is_npz(data):
@@ -160,7 +170,8 @@ def write_points(
     overwrite: bool = False,
     fields: dict[str, np.ndarray] | None = None,
     binary: bool = True,
-    coordinate_dtype=np.float32,
+    coordinate_dtype=None,
+    like: str | Path | None = None,
 ) -> None:
     """Write a point cloud atomically.
 
@@ -176,11 +187,18 @@ def write_points(
         Replace an existing file.
     fields : dict of str to (N,) array_like, optional
         Extra per-point scalars (e.g. ``residual``): float32 properties in PLY/PCD,
-        extra columns in text files, arrays in npz; not stored in npy.
+        extra columns in text files, arrays in npz and h5, float32 extra-bytes
+        dimensions in LAS/LAZ (or the dimension of that name, ``intensity``...); not
+        stored in npy.
     binary : bool
         Binary (default) or ascii body for PLY and PCD; ignored by other formats.
-    coordinate_dtype : numpy dtype
-        float32 (default; files' usual precision) or float64 coordinates.
+    coordinate_dtype : numpy dtype, optional
+        float32 or float64 coordinates; by default `coordinate_dtype_for(points)`:
+        float32 unless the coordinates need float64. LAS/LAZ ignore it.
+    like : str or Path, optional
+        A LAS/LAZ file whose scale, offset, point format and CRS records a LAS/LAZ
+        output copies (`escape complete` passes its input); ignored for other outputs,
+        or when `like` is not a LAS file. Without it LAS/LAZ get `las.layout_for`.
 
     Raises
     ------
@@ -195,11 +213,11 @@ def write_points(
     """
     name = display_name(path) if not is_stdio(path) else "<stdout>"
     fmt = output_format(path, fmt)
-    coordinate_dtype = np.dtype(coordinate_dtype)
-    if coordinate_dtype not in COORDINATE_DTYPES:
-        raise ValueError(f"coordinate_dtype must be float32 or float64, not {coordinate_dtype}")
     points = _checked_points(points, name)
     fields = _checked_fields(fields or {}, len(points), name)
+    coordinate_dtype = coordinate_dtype_for(points) if coordinate_dtype is None else np.dtype(coordinate_dtype)
+    if coordinate_dtype not in COORDINATE_DTYPES:
+        raise ValueError(f"coordinate_dtype must be float32 or float64, not {coordinate_dtype}")
     if fmt == "ply":
         data = serialize_ply(points, fields, binary=binary, coordinate_dtype=coordinate_dtype)
     elif fmt == "pcd":
@@ -208,6 +226,11 @@ def write_points(
         data = serialize_npy(points, coordinate_dtype=coordinate_dtype)
     elif fmt == "npz":
         data = serialize_npz(points, fields, coordinate_dtype=coordinate_dtype)
+    elif fmt in ("las", "laz"):
+        layout = template_layout(like) if like is not None else None
+        data = serialize_las(points, fields, compressed=fmt == "laz", layout=layout)
+    elif fmt == "h5":
+        data = serialize_h5(points, fields, coordinate_dtype=coordinate_dtype)
     else:
         data = serialize_text(points, fields, fmt=fmt, coordinate_dtype=coordinate_dtype)
     write_output_bytes(path, data, overwrite=overwrite)
@@ -258,7 +281,7 @@ def write_array(path: str | Path, array, *, overwrite: bool = False) -> None:
 def _checked_format(fmt: str) -> str:
     normalised = fmt.lower().lstrip(".")
     if normalised not in FORMATS:
-        raise InputFileError(f"unknown format '{fmt}'; use one of {', '.join(FORMATS)}")
+        raise InputFileError(f"unknown format '{fmt}'; use one of {FORMAT_LIST}")
     return normalised
 
 
@@ -272,6 +295,10 @@ def _parse(data: bytes, name: str, fmt: str) -> tuple[np.ndarray, Fields]:
             return parse_pcd(data, name)
         if fmt in ("npy", "npz"):
             return parse_npy(data, name)
+        if fmt in ("las", "laz"):
+            return parse_las(data, name)
+        if fmt == "h5":
+            return parse_h5(data, name)
         return parse_text(data, name, fmt)
 
 

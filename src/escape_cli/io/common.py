@@ -15,6 +15,37 @@ Fields = dict[str, np.ndarray]
 # Enough significant digits to give back the exact binary value.
 SIGNIFICANT_DIGITS = {np.dtype(np.float32): 9, np.dtype(np.float64): 17}
 
+FLOAT32_SHARE = 1e-5
+"""Coordinates are written as float64 when float32's spacing at the largest |coordinate|
+exceeds this share of the cloud's extent (its bounding box's longest side)."""
+
+
+def coordinate_dtype_for(points: np.ndarray) -> np.dtype:
+    """float32, or float64 where float32 would round the coordinates by too much.
+
+    float32 has 24 significant bits: its spacing at |x| is about 1.2e-7 |x|. A cloud
+    about one unit across near the origin loses nothing of note; the same cloud 10^6
+    units away (UTM eastings and northings in metres) would be rounded to 0.06-0.5 units.
+    The rule: float64 when `numpy.spacing(float32(max |x|))` exceeds `FLOAT32_SHARE`
+    (1e-5) of the extent, i.e. from 64-128 extents away from the origin on; a single point
+    (or identical points) away from the origin gets float64 too.
+
+    Parameters
+    ----------
+    points : (N, 3) float64, N >= 1, finite.
+
+    Returns
+    -------
+    numpy.dtype
+        float32 or float64.
+    """
+    largest = float(np.max(np.abs(points)))
+    extent = float(np.max(points.max(axis=0) - points.min(axis=0)))
+    spacing = float(np.spacing(np.float32(largest)))
+    if largest == 0.0 or spacing <= FLOAT32_SHARE * extent:
+        return np.dtype(np.float32)
+    return np.dtype(np.float64)
+
 
 def tokens_to_float(tokens: list[bytes], name: str, what: str) -> np.ndarray:
     """Convert number tokens to float64, or raise a one-line error naming the bad token.

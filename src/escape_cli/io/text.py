@@ -14,9 +14,10 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.errors import InputFileError
+from escape_cli.formats import TEXT_FORMATS
 from escape_cli.io.common import Fields, format_rows, tokens_to_float
 
-TEXT_FORMATS = ("xyz", "txt", "pts", "csv")
+__all__ = ["TEXT_FORMATS", "parse_text", "serialize_text"]
 COMMENT_PREFIXES = (b"#", b"//")
 PTS_EXTRA_COLUMNS = {1: ["intensity"], 4: ["intensity", "red", "green", "blue"], 3: ["red", "green", "blue"]}
 

@@ -139,10 +139,14 @@ def prepare_split(
 
 
 def _run_parallel(func, jobs, workers: int, label: str) -> list:
+    import logging
+
+    from rich.console import Console
     from rich.progress import Progress
 
     results = []
-    with Progress(transient=True) as progress:
+    quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
+    with Progress(transient=True, console=Console(stderr=True), disable=quiet) as progress:
         task = progress.add_task(label, total=len(jobs))
         if workers <= 1:
             for job in jobs:

@@ -21,7 +21,14 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.data.primitives import beam, box, frustum, grid_shell, rounded
-from escape_cli.data.shapes import airplane, cabinet, car, chair, lamp, sofa, table, watercraft
+from escape_cli.data.shapes.airplane import generate as airplane
+from escape_cli.data.shapes.cabinet import generate as cabinet
+from escape_cli.data.shapes.car import generate as car
+from escape_cli.data.shapes.chair import generate as chair
+from escape_cli.data.shapes.lamp import generate as lamp
+from escape_cli.data.shapes.sofa import generate as sofa
+from escape_cli.data.shapes.table import generate as table
+from escape_cli.data.shapes.watercraft import generate as watercraft
 
 # synset -> (probability that the object's parts are rounded, share of the smallest extent (low, high))
 ROUNDING = {
@@ -41,13 +48,13 @@ SUBTYPES_ADDED = {"04530566": ("rowboat",), "03001627": ("shell",)}
 """Sub-types that only generator 2 makes."""
 
 _BASE = {
-    "02691156": airplane.generate,
-    "02933112": cabinet.generate,
-    "02958343": car.generate,
-    "03001627": chair.generate,
-    "04256520": sofa.generate,
-    "04379243": table.generate,
-    "04530566": watercraft.generate,
+    "02691156": airplane,
+    "02933112": cabinet,
+    "02958343": car,
+    "03001627": chair,
+    "04256520": sofa,
+    "04379243": table,
+    "04530566": watercraft,
 }
 
 
@@ -68,7 +75,7 @@ def generate(synset: str, rng: np.random.Generator, detail: np.random.Generator)
         return _shell_chair(rng)
     if synset == "03636649":
         hollow = detail.random() < 0.75
-        subtype, parts = lamp.generate(rng, hollow=hollow)
+        subtype, parts = lamp(rng, hollow=hollow)
         subtype = f"{subtype}_open" if hollow and not subtype.endswith("_open") else subtype
     else:
         subtype, parts = _BASE[synset](rng)
