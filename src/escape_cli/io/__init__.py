@@ -21,7 +21,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points
 from escape_cli.errors import InputFileError, PointCloudError
-from escape_cli.io.common import Fields
+from escape_cli.io.common import Fields, storage_dtype
 from escape_cli.io.files import display_name, is_stdio, read_input_bytes, write_output_bytes
 from escape_cli.io.npy import is_npy, is_npz, parse_array, parse_npy, serialize_array, serialize_npy, serialize_npz
 from escape_cli.io.pcd import is_pcd, parse_pcd, serialize_pcd
@@ -180,7 +180,8 @@ def write_points(
     binary : bool
         Binary (default) or ascii body for PLY and PCD; ignored by other formats.
     coordinate_dtype : numpy dtype
-        float32 (default; files' usual precision) or float64 coordinates.
+        float32 (default; files' usual precision) or float64 coordinates. float32 gives
+        way to float64 for coordinates (and fields) beyond its range.
 
     Raises
     ------
@@ -200,6 +201,7 @@ def write_points(
         raise ValueError(f"coordinate_dtype must be float32 or float64, not {coordinate_dtype}")
     points = _checked_points(points, name)
     fields = _checked_fields(fields or {}, len(points), name)
+    coordinate_dtype = storage_dtype(points, coordinate_dtype)  # never inf (or 0) where float32 cannot hold them
     if fmt == "ply":
         data = serialize_ply(points, fields, binary=binary, coordinate_dtype=coordinate_dtype)
     elif fmt == "pcd":
