@@ -145,7 +145,7 @@ def case_too_few_points(tmp):
 
 
 def case_fewer_than_four_anchors(tmp):
-    return ["anchors", _ply_file(tmp), "--json", "--k", "3"], "the number of anchors) must be at least 4"
+    return ["anchors", _ply_file(tmp), "--json", "--k", "3"], "--k: must be at least 4, got 3"
 
 
 def case_all_points_identical(tmp):
@@ -252,16 +252,249 @@ def case_decode_both_from_stdin(tmp):
     return ["decode", "-", "-a", "-", "-o", tmp / "o.ply"], "cannot both come from stdin"
 
 
+# --- an output is never an input, --overwrite or not (issue 21, item 1)
+
+
+def case_anchors_output_is_the_input(tmp):
+    src = _ply_file(tmp)
+    return ["anchors", src, "-o", src, "--overwrite"], "in.ply is also an input: escape never writes over its inputs"
+
+
+def case_anchors_output_is_a_symlink_to_the_input(tmp):
+    src = _ply_file(tmp)
+    (tmp / "link.ply").symlink_to(src)
+    return ["anchors", src, "-o", tmp / "link.ply", "--overwrite"], "link.ply is the same file as the input"
+
+
+def case_anchors_output_is_a_hard_link_to_the_input(tmp):
+    src = _ply_file(tmp)
+    os.link(src, tmp / "hard.ply")
+    return ["anchors", src, "-o", tmp / "hard.ply", "--overwrite"], "hard.ply is the same file as the input"
+
+
+def case_anchors_output_is_the_input_by_another_path(tmp):
+    src = _ply_file(tmp)
+    (tmp / "sub").mkdir()
+    return ["anchors", src, "-o", tmp / "sub" / ".." / "in.ply", "--overwrite"], "is the same file as the input"
+
+
+def case_encode_anchors_out_is_the_input(tmp):
+    src = _ply_file(tmp)
+    return ["encode", src, "-o", tmp / "d.npy", "--anchors-out", src, "--overwrite"], "in.ply is also an input"
+
+
+def case_encode_both_outputs_the_same_file(tmp):
+    return ["encode", _ply_file(tmp), "-o", tmp / "d.npy", "--anchors-out", tmp / "d.npy"], "--output and --anchors-out name the same file"
+
+
+def case_decode_output_is_the_anchors(tmp):
+    distances, anchors = _encoded(tmp)
+    return ["decode", distances, "-a", anchors, "-o", anchors, "--overwrite"], "d.anchors.ply is also an input"
+
+
+def case_decode_output_is_the_distances(tmp):
+    distances, anchors = _encoded(tmp)
+    return ["decode", distances, "-a", anchors, "-o", distances, "--overwrite"], "d.npy is also an input"
+
+
+def case_average_checkpoints_output_is_an_input(tmp):
+    for name in ("a.pt", "b.pt"):
+        (tmp / name).write_bytes(b"not loaded: refused before")
+    return ["average-checkpoints", tmp / "a.pt", tmp / "b.pt", "-o", tmp / "a.pt", "--overwrite"], "a.pt is also an input"
+
+
+def case_export_onnx_output_is_a_symlink_to_the_checkpoint(tmp):
+    (tmp / "run.pt").write_bytes(b"not loaded: refused before")
+    (tmp / "model.onnx").symlink_to(tmp / "run.pt")
+    return ["export-onnx", tmp / "run.pt", "-o", tmp / "model.onnx", "--overwrite"], "model.onnx is the same file as the input"
+
+
+def case_eval_json_is_the_model_metadata(tmp):
+    (tmp / "m.onnx").write_bytes(b"x")
+    (tmp / "m.json").write_text('{"k": 8, "input_points": 8, "output_points": 8}')
+    return ["eval", "--root", tmp, "--model", tmp / "m.onnx", "--json-out", tmp / "m.json", "--overwrite"], "m.json is also an input"
+
+
+def case_eval_save_inside_the_dataset(tmp):
+    (tmp / "data").mkdir()
+    return ["eval", "--root", tmp / "data", "--save", tmp / "data" / "out"], "is inside the input"
+
+
+def case_train_out_is_the_data(tmp):
+    pytest.importorskip("torch")
+    (tmp / "data").mkdir()
+    return ["train", "--data", tmp / "data", "--out", tmp / "data"], "is the dataset folder"
+
+
+def case_train_init_is_a_checkpoint_the_run_writes(tmp):
+    pytest.importorskip("torch")
+    (tmp / "data").mkdir()
+    (tmp / "run").mkdir()
+    (tmp / "run" / "best.pt").write_bytes(b"weights")
+    return ["train", "--data", tmp / "data", "--out", tmp / "run", "--init", tmp / "run" / "best.pt"], "a checkpoint this run would overwrite"
+
+
+# --- outputs and models checked before any work (item 7)
+
+
+def case_output_folder_is_a_file(tmp):
+    (tmp / "f").write_text("a file")
+    return ["anchors", _ply_file(tmp), "-o", tmp / "f" / "a.ply"], "f is not a directory"
+
+
+def case_eval_save_under_a_file(tmp):
+    (tmp / "data").mkdir()
+    (tmp / "f").write_text("a file")
+    return ["eval", "--root", tmp / "data", "--save", tmp / "f" / "out"], "f is not a directory"
+
+
+def case_eval_model_is_a_folder(tmp):
+    return ["eval", "--root", tmp, "--model", tmp], "is a folder; give the model's .onnx file"
+
+
+def case_eval_model_metadata_not_json(tmp):
+    (tmp / "m.onnx").write_bytes(b"x")
+    (tmp / "m.json").write_text("{not json")
+    return ["eval", "--root", tmp, "--model", tmp / "m.onnx"], "m.json is corrupt (not JSON"
+
+
+def case_eval_model_metadata_not_an_object(tmp):
+    (tmp / "m.onnx").write_bytes(b"x")
+    (tmp / "m.json").write_text("[1, 2]")
+    return ["eval", "--root", tmp, "--model", tmp / "m.onnx"], "a JSON object expected, got list"
+
+
+def case_eval_model_metadata_bad_count(tmp):
+    (tmp / "m.onnx").write_bytes(b"x")
+    (tmp / "m.json").write_text('{"k": "eight", "input_points": 8, "output_points": 8}')
+    return ["eval", "--root", tmp, "--model", tmp / "m.onnx"], "k must be a positive integer, got 'eight'"
+
+
+def case_eval_model_not_onnx(tmp):
+    return ["eval", "--root", tmp, "--model", _ply_file(tmp)], "is not an ONNX model"
+
+
+def case_export_onnx_checkpoint_is_a_folder(tmp):
+    return ["export-onnx", tmp, "-o", tmp / "m.onnx"], "is a folder, not a checkpoint file"
+
+
+def case_export_onnx_output_folder_under_a_file(tmp):
+    (tmp / "run.pt").write_bytes(b"x")
+    (tmp / "f").write_text("a file")
+    return ["export-onnx", tmp / "run.pt", "-o", tmp / "f" / "m.onnx"], "f is not a directory"
+
+
+# --- values that must not get through (item 5)
+
+
+def case_coordinates_near_1e300(tmp):
+    (tmp / "big.xyz").write_text("\n".join(f"{1e300 * (i + 1)} {i} {2 * i}" for i in range(40)) + "\n")
+    return ["anchors", tmp / "big.xyz", "--json"], "big.xyz: the cloud has values up to 4e+301; at most 1e+150 can be used"
+
+
+def case_complex_npy(tmp):
+    np.save(tmp / "c.npy", _cloud().astype(np.complex128))
+    return ["anchors", tmp / "c.npy", "--json"], "c.npy holds complex numbers (complex128)"
+
+
+def case_complex_distances_for_decode(tmp):
+    distances, anchors = _encoded(tmp)
+    np.save(tmp / "c.npy", np.load(distances).astype(np.complex64))
+    return ["decode", tmp / "c.npy", "-a", anchors, "-o", tmp / "o.ply"], "holds complex numbers"
+
+
+def case_decode_distances_times_1e300(tmp):
+    distances, anchors = _encoded(tmp)
+    np.save(tmp / "huge.npy", np.load(distances) * 1e300)
+    return ["decode", tmp / "huge.npy", "-a", anchors, "-o", tmp / "o.ply"], "at most 1e+150 can be used"
+
+
+def case_decode_distances_that_do_not_fit_the_anchors(tmp):
+    distances, anchors = _encoded(tmp)
+    np.save(tmp / "huge.npy", np.load(distances) * 1e120)
+    return ["decode", tmp / "huge.npy", "-a", anchors, "-o", tmp / "o.ply"], "do not fit the anchors of"
+
+
+def case_decode_negative_distances(tmp):
+    distances, anchors = _encoded(tmp)
+    values = np.load(distances)
+    values[7, 3] = -0.25
+    np.save(tmp / "neg.npy", values)
+    return ["decode", tmp / "neg.npy", "-a", anchors, "-o", tmp / "o.ply"], "neg.npy: 1 negative distance in 1 of 200 rows"
+
+
+# --- files other software writes (item 8) and headers that disagree with the body (item 6)
+
+
+def case_ply_list_length_not_an_integer(tmp):
+    (tmp / "l.ply").write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float v\nproperty float x\nproperty float y\n"
+        b"property float z\nend_header\n7.94 1 2 3\n"
+    )
+    return ["anchors", tmp / "l.ply", "--json"], "l.ply: corrupt PLY body (list length '7.94' is not an integer)"
+
+
+def case_pts_count_line_disagrees(tmp):
+    (tmp / "s.pts").write_text("50\n" + "".join(f"{i} {i % 7} {i % 5}\n" for i in range(40)))
+    return ["anchors", tmp / "s.pts", "--json"], "s.pts: the first line declares 50 points, but 40 rows follow"
+
+
+def case_binary_ply_one_byte_longer(tmp):
+    path = _ply_file(tmp)
+    path.write_bytes(path.read_bytes() + b"x")
+    return ["anchors", path, "--json"], "in.ply: 1 byte after the end of the PLY body the header declares (vertex 200)"
+
+
+def case_ascii_ply_one_line_longer(tmp):
+    path = tmp / "a.ply"
+    write_points(path, _cloud(), binary=False)
+    path.write_bytes(path.read_bytes() + b"1 2 3\n")
+    return ["anchors", path, "--json"], "a.ply: 3 values after the end of the PLY body"
+
+
+def case_binary_pcd_one_byte_longer(tmp):
+    path = tmp / "b.pcd"
+    write_points(path, _cloud())
+    path.write_bytes(path.read_bytes() + b"x")
+    return ["anchors", path, "--json"], "b.pcd: 1 byte after the 200 points the header declares"
+
+
+def case_ascii_pcd_more_values_than_declared(tmp):
+    path = tmp / "a.pcd"
+    write_points(path, _cloud(), binary=False)
+    path.write_bytes(path.read_bytes() + b"1 2 3\n")
+    return ["anchors", path, "--json"], "a.pcd: 3 values after the 200 points the header declares"
+
+
+# --- messages stay one printable line (item 9)
+
+
+def case_control_bytes_in_a_ply_header_are_escaped(tmp):
+    (tmp / "g.ply").write_bytes(b"ply\nformat ascii 1.0\n\x1b[31mred\x07\nend_header\n")
+    return ["anchors", tmp / "g.ply", "--json"], "corrupt PLY header at line 3: '\\x1b[31mred\\x07'"
+
+
+def case_control_bytes_in_a_pcd_header_are_escaped(tmp):
+    (tmp / "g.pcd").write_bytes(b"VERSION 0.7\n\x1b]0;title\x07 x\n")
+    return ["anchors", tmp / "g.pcd", "--json"], "unexpected line '\\x1b]0;title\\x07 x'"
+
+
+def case_control_bytes_in_a_text_cloud_are_escaped(tmp):
+    (tmp / "g.xyz").write_bytes(b"1 2 \x1b[2J\n")
+    return ["anchors", tmp / "g.xyz", "--json"], "'\\x1b[2J' is not a number"
+
+
 CASES = {name[len("case_") :]: function for name, function in sorted(globals().items()) if name.startswith("case_")}
 
 
 def _assert_one_line_error(exit_code: int, stderr: str, expected: str) -> None:
-    assert exit_code != 0
+    assert exit_code not in (0, 70)
     assert "Traceback" not in stderr
     lines = stderr.splitlines()
     assert len(lines) == 1, stderr
     assert lines[0].startswith("escape: error: "), stderr
     assert expected in lines[0], lines[0]
+    assert all(c.isprintable() for c in lines[0]), repr(lines[0])
 
 
 @pytest.mark.parametrize("case", CASES.values(), ids=CASES.keys())

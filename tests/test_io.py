@@ -538,6 +538,144 @@ def test_realdata_compressed_pcd_is_fast(realdata_dir):
     assert points.shape == (209280, 3) and {"red", "green", "blue"} <= set(fields)
 
 
+# ---------------------------------------------------------------- files other software writes
+# Small hand-made files of the shapes PDAL, PCL and others write (issue 21, item 8).
+
+
+def test_pdal_text_with_quoted_upper_case_names():
+    data = b'"X","Y","Z","Intensity"\n1.5,2.25,-3.0,10\n4.0,5.0,6.0,20\n'
+    xyz, fields = cloud_io.text.parse_text(data, "autzen.txt", "txt")
+    np.testing.assert_array_equal(xyz, [[1.5, 2.25, -3.0], [4.0, 5.0, 6.0]])
+    np.testing.assert_array_equal(fields["Intensity"], [10, 20])
+
+
+def test_named_coordinates_in_any_column():
+    data = b'"Intensity","Z","X","Y"\n10,3,1,2\n20,6,4,5\n'
+    xyz, fields = cloud_io.text.parse_text(data, "t.csv", "csv")
+    np.testing.assert_array_equal(xyz, [[1, 2, 3], [4, 5, 6]])
+    assert list(fields) == ["Intensity"]
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary"])
+def test_pcd_with_upper_case_coordinate_fields(kind):
+    points = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], dtype=np.float32)
+    if kind == "ascii":
+        body = b"1 2 3 7\n4 5 6 8\n"
+    else:
+        body = b"".join(struct.pack("<ffff", *row, 7.0 + i) for i, row in enumerate(points))
+    data = _pcd("X Y Z Intensity", "4 4 4 4", "F F F F", "1 1 1 1", 2, kind, body)
+    xyz, fields = cloud_io.pcd.parse_pcd(data, "autzen-utm.pcd")
+    np.testing.assert_array_equal(xyz, points)
+    np.testing.assert_array_equal(fields["Intensity"], [7, 8])
+
+
+def test_pcd_ascii_separated_by_commas():
+    data = _pcd("x y z", "4 4 4", "F F F", "1 1 1", 2, "ascii", b"1,2,3\n4, 5, 6\n")
+    xyz, _ = cloud_io.pcd.parse_pcd(data, "c.pcd")
+    np.testing.assert_array_equal(xyz, [[1, 2, 3], [4, 5, 6]])
+
+
+@pytest.mark.parametrize("magic", [b"ply \n", b"ply\t\r\n", b"ply  \r\n"])
+def test_ply_magic_line_with_trailing_blanks(magic):
+    data = magic + b"format ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n"
+    assert cloud_io.sniff_format(data) == "ply"
+    xyz, _ = cloud_io.ply.parse_ply(data, "t.ply")
+    np.testing.assert_array_equal(xyz, [[1, 2, 3]])
+
+
+def test_not_a_ply_file_says_what_its_first_line_is():
+    with pytest.raises(InputFileError, match="its first line is 'plyx', not 'ply'"):
+        cloud_io.ply.parse_ply(b"plyx\nformat ascii 1.0\n", "t.ply")
+
+
+def test_pts_count_line_must_match_the_rows():
+    xyz, _ = cloud_io.text.parse_text(b"2\n1 2 3\n4 5 6\n", "s.pts", "pts")
+    assert xyz.shape == (2, 3)
+    for data, message in ((b"3\n1 2 3\n4 5 6\n", "declares 3 points, but 2 rows follow"),
+                          (b"5\n", "declares 5 points, but no rows follow")):  # fmt: skip
+        with pytest.raises(InputFileError, match=message):
+            cloud_io.text.parse_text(data, "s.pts", "pts")
+
+
+# ---------------------------------------------------------------- headers that disagree with the body
+
+
+def _valid_bytes(fmt: str, binary: bool, points: np.ndarray) -> bytes:
+    if fmt == "ply":
+        return cloud_io.ply.serialize_ply(points, {}, binary=binary)
+    return cloud_io.pcd.serialize_pcd(points, {}, binary=binary)
+
+
+def _compressed_pcd(points: np.ndarray) -> bytes:
+    raw = b"".join(np.ascontiguousarray(points[:, j], dtype=np.float32).tobytes() for j in range(3))
+    compressed = _lzf_compress_for_tests(raw)
+    return _pcd("x y z", "4 4 4", "F F F", "1 1 1", len(points), "binary_compressed",
+                struct.pack("<II", len(compressed), len(raw)) + compressed)  # fmt: skip
+
+
+HEADER_VARIANTS = [("ply", True), ("ply", False), ("pcd", True), ("pcd", False), ("pcd", "compressed")]
+
+
+@pytest.mark.parametrize(("fmt", "binary"), HEADER_VARIANTS)
+def test_padding_after_the_body_is_accepted(fmt, binary):
+    points = np.arange(12, dtype=np.float64).reshape(4, 3)
+    valid = _compressed_pcd(points) if binary == "compressed" else _valid_bytes(fmt, binary, points)
+    parse = cloud_io.ply.parse_ply if fmt == "ply" else cloud_io.pcd.parse_pcd
+    for padding in (b"\n", b"\r\n", b"\0" * 3901):  # PCL pads its binary_compressed files with zeros
+        np.testing.assert_array_equal(parse(valid + padding, "t")[0], points)
+
+
+@pytest.mark.parametrize(("fmt", "binary"), HEADER_VARIANTS)
+def test_data_after_the_declared_body_is_refused(fmt, binary):
+    points = np.arange(12, dtype=np.float64).reshape(4, 3)
+    valid = _compressed_pcd(points) if binary == "compressed" else _valid_bytes(fmt, binary, points)
+    parse = cloud_io.ply.parse_ply if fmt == "ply" else cloud_io.pcd.parse_pcd
+    extra = b"x" if binary else b"9 9 9\n"
+    with pytest.raises(InputFileError, match=r"after the (end of the PLY body|4 points) the header declares"):
+        parse(valid + extra, "t")
+
+
+def test_ply_elements_after_the_vertices_count_towards_the_end():
+    header = ["format binary_little_endian 1.0", "element vertex 1", "property float x", "property float y",
+              "property float z", "element note 2", "property uchar a"]  # fmt: skip
+    body = struct.pack("<fff", 1, 2, 3) + b"\x05\x06"
+    assert cloud_io.ply.parse_ply(_ply(header, body), "t.ply")[0].tolist() == [[1, 2, 3]]
+    with pytest.raises(InputFileError, match=r"1 byte after .*\(vertex 1, note 2\)"):
+        cloud_io.ply.parse_ply(_ply(header, body + b"\x07"), "t.ply")
+    with pytest.raises(InputFileError, match="'note' element cut off"):
+        cloud_io.ply.parse_ply(_ply(header, body[:-1]), "t.ply")
+
+
+# ---------------------------------------------------------------- values float32 cannot hold
+
+
+@pytest.mark.parametrize(("fmt", "binary"), WRITE_VARIANTS)
+@pytest.mark.parametrize("scale", [1e100, 1e-40])
+def test_float32_gives_way_to_float64_where_it_cannot_hold_the_values(tmp_path, rng, fmt, binary, scale):
+    points = rng.normal(size=(20, 3)) * scale
+    fields = {"residual": rng.uniform(1, 2, size=20) * scale} if fmt in FORMATS_KEEPING_FIELDS else None
+    path = tmp_path / f"c.{fmt}"
+    cloud_io.write_points(path, points, fields=fields, binary=binary)
+    back, back_fields = cloud_io.read_point_fields(path)
+    np.testing.assert_array_equal(back, points)  # not inf, not 0: every digit
+    if fields:
+        np.testing.assert_array_equal(back_fields["residual"], fields["residual"])
+
+
+def test_float32_stays_where_it_holds_the_values(tmp_path, rng):
+    cloud_io.write_points(tmp_path / "c.ply", rng.normal(size=(20, 3)) * 1e30, fields={"r": np.zeros(20)})
+    assert b"property float x" in (tmp_path / "c.ply").read_bytes()[:200]
+    assert b"property float r" in (tmp_path / "c.ply").read_bytes()[:200]
+
+
+def test_complex_arrays_are_refused(rng):
+    data = cloud_io.npy.serialize_array(rng.normal(size=(5, 3)) + 1j)
+    with pytest.raises(InputFileError, match="holds complex numbers"):
+        cloud_io.npy.parse_npy(data, "c.npy")
+    with pytest.raises(InputFileError, match="holds complex numbers"):
+        cloud_io.npy.parse_array(data, "c.npy")
+
+
 # ---------------------------------------------------------------- robustness
 
 

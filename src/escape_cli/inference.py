@@ -111,27 +111,85 @@ class CompletionModel:
 
 
 def read_metadata(path: Path) -> dict:
-    """The JSON beside a model file, checked for the fields inference needs."""
+    """The JSON beside a model file, checked for the fields inference needs.
+
+    Cheap (no onnxruntime): commands call it before any work, so that a wrong model path
+    is reported first.
+
+    Raises
+    ------
+    ModelError
+        `path` is missing, a folder, empty or not an ``.onnx`` file; its metadata is
+        missing, not JSON, not an object, or lacks positive integer ``k``,
+        ``input_points`` and ``output_points``.
+    """
     path = Path(path)
+    if path.is_dir():
+        raise ModelError(f"model path {path} is a folder; give the model's .onnx file")
     if not path.is_file():
         raise ModelError(f"model file {path} does not exist")
+    if path.suffix.lower() != ".onnx":
+        raise ModelError(f"model file {path} is not an ONNX model (expected a .onnx file with its .json beside it)")
+    if path.stat().st_size == 0:
+        raise ModelError(f"model file {path} is empty")
     meta_path = path.with_suffix(".json")
     if not meta_path.is_file():
         raise ModelError(f"model metadata {meta_path} is missing (export-onnx writes it beside the model)")
     try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, ValueError) as err:
-        raise ModelError(f"model metadata {meta_path} is unreadable: {err}") from None
+        meta = json.loads(meta_path.read_bytes())
+    except OSError as err:
+        raise ModelError(f"model metadata {meta_path} cannot be read: {err.strerror or err}") from None
+    except ValueError as err:  # JSONDecodeError, UnicodeDecodeError
+        raise ModelError(f"model metadata {meta_path} is corrupt (not JSON: {err})") from None
+    if not isinstance(meta, dict):
+        raise ModelError(f"model metadata {meta_path} is corrupt (a JSON object expected, got {type(meta).__name__})")
     missing = [key for key in ("k", "input_points", "output_points") if key not in meta]
     if missing:
         raise ModelError(f"model metadata {meta_path} lacks {', '.join(missing)}")
+    for key in ("k", "input_points", "output_points"):
+        value = meta[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ModelError(f"model metadata {meta_path}: {key} must be a positive integer, got {value!r}")
     return meta
+
+
+def max_output_points(meta: dict) -> int:
+    """The most points a completion by this model can hold: its predicted points plus the
+    observed ones merged into them (at most the network's input size)."""
+    return int(meta["output_points"]) + int(meta["input_points"])
+
+
+def check_output_points(points: int, meta: dict, model_name: str, name: str = "output_points") -> int:
+    """`points` if the model can produce that many distinct points, else ParameterError saying why."""
+    from escape_cli.core.params import as_count
+    from escape_cli.errors import ParameterError
+
+    points = as_count(points, name, minimum=1)
+    ceiling = max_output_points(meta)
+    if points > ceiling:
+        raise ParameterError(
+            f"{name} {points} is more than {model_name} can produce: at most {ceiling} "
+            f"({meta['output_points']} predicted and up to {meta['input_points']} observed points)"
+        )
+    return points
+
+
+def quiet_onnxruntime(ort=None) -> None:
+    """Silence onnxruntime's own logger (its coloured warnings, e.g. about telemetry) below errors.
+
+    Call before creating a session: the session options' level applies only to the
+    session, not to the environment's messages.
+    """
+    if ort is None:
+        import onnxruntime as ort
+    ort.set_default_logger_severity(3)
 
 
 @lru_cache(maxsize=4)
 def _session(path: str, threads: int):
     import onnxruntime as ort
 
+    quiet_onnxruntime(ort)
     options = ort.SessionOptions()
     options.log_severity_level = 3
     if threads:

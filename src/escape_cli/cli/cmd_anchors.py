@@ -53,9 +53,9 @@ def command(
         raise OutputFileError("no output: give -o OUT for the anchor cloud, or --json")
     if output == "-" and json_out:
         raise OutputFileError("-o - and --json both write to stdout; give -o a file name")
-    if output is not None:
-        output_format(output, fmt)  # an unknown format fails now, not after the work
-    check_output(output, overwrite)
+    if output is not None or fmt is not None:
+        output_format(output or "-", fmt)  # an unknown format fails now, not after the work
+    check_output(output, overwrite, inputs=[input_path])
 
     points = read_points(input_path, input_format)  # (N, 3)
     with errors_about(display_name(input_path)):

@@ -17,9 +17,18 @@ def command(
     overwrite: bool = OVERWRITE,
 ) -> None:
     """Average the weights of checkpoints (the same network); keeps the latest one's metadata. Needs the train extra."""
+    from escape_cli.cli.options import check_output
+    from escape_cli.errors import InputFileError
     from escape_cli.extras import require
 
     require("torch", "escape average-checkpoints")
+
+    for path in checkpoints:
+        if not path.is_file():
+            what = "is a folder, not a checkpoint file" if path.is_dir() else "does not exist"
+            raise InputFileError(f"checkpoint {path} {what}")
+    check_output(output, overwrite, inputs=checkpoints, make_parents=True)  # before any checkpoint is loaded
+
     from escape_cli.nn.average import average_checkpoints
 
     state = average_checkpoints(checkpoints, output, overwrite=overwrite, validate=validate)

@@ -10,13 +10,18 @@ import typer
 
 from escape_cli.cli.options import FORMAT, INPUT_FORMAT, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
 
+DEFAULT_POINTS = 16384
+
 
 def command(
     inputs: List[str] = typer.Argument(..., help="Partial clouds: files, folders, globs, or '-' for stdin."),
     output: str = typer.Option(..., "--output", "-o", help="Output file (one input), folder (several), or '-'."),
     model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: $ESCAPE_MODEL, else the model shipped in the package)."),
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
-    points: int = typer.Option(16384, "--points", "-n", min=1, help="Points in each completed cloud."),
+    points: Optional[int] = typer.Option(
+        None, "--points", "-n", min=1,
+        help="Points in each completed cloud, at most what the model can produce (default 16384, or all a smaller model gives).",
+    ),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),
     snap_radius: Optional[float] = SNAP_RADIUS,
     anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
@@ -37,7 +42,9 @@ def command(
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     if solver not in ("batched", "scipy"):
         raise typer.BadParameter("must be batched or scipy", param_hint="--solver")
+    points = _checked_points(model, points)
     jobs = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, overwrite=overwrite)
+    _check_job_outputs(jobs, fmt)
     settings = CompletionJob.Settings(
         model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
         snap_radius=snap_radius,
@@ -47,3 +54,30 @@ def command(
     failures = run_jobs(jobs, settings, workers=workers, summary_stream=summary_stream)
     if failures:
         raise EscapeError(f"{failures} of {len(jobs)} file(s) failed")
+
+
+def _checked_points(model: Optional[Path], points: Optional[int]) -> int:
+    """Before any file is read: the model's path and metadata, and --points within what it can produce."""
+    from escape_cli.inference import check_output_points, default_model_path, max_output_points, read_metadata
+
+    path = model if model is not None else default_model_path()
+    meta = read_metadata(path)
+    if points is None:
+        return min(DEFAULT_POINTS, max_output_points(meta))
+    return check_output_points(points, meta, Path(path).name, name="--points")
+
+
+def _check_job_outputs(jobs, fmt: Optional[str]) -> None:
+    """Before any file is read: the output formats, and no output (completion or anchors) of
+    any job is one of the inputs, --overwrite or not."""
+    from escape_cli.io import output_format
+    from escape_cli.io.files import check_distinct_outputs, check_not_input
+
+    sources = [job.source for job in jobs]
+    for job in jobs:
+        output_format(job.output, fmt)
+        if job.anchors is not None:
+            output_format(job.anchors)
+        check_not_input(job.output, sources)
+        check_not_input(job.anchors, sources)
+        check_distinct_outputs({"--output": job.output, "--anchors-out": job.anchors})

@@ -9,6 +9,10 @@ import typer
 
 from escape_cli.cli.options import JSON, OVERWRITE, print_summary
 
+MAX_OBJECTS = 100_000
+"""Objects per category and split: PCN's largest category has 5,750; more is a typo."""
+MAX_COMPLETE_POINTS = 1 << 20
+
 app = typer.Typer(help="Make and inspect training datasets (PCN layout).", no_args_is_help=True)
 
 CATEGORIES_OPTION = typer.Option(
@@ -20,15 +24,15 @@ CATEGORIES_OPTION = typer.Option(
 @app.command("synth")
 def synth(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (must be empty unless --overwrite)."),
-    train: int = typer.Option(0, "--train", min=0, help="Training objects PER CATEGORY."),
-    val: int = typer.Option(0, "--val", min=0, help="Validation objects PER CATEGORY."),
-    test: int = typer.Option(0, "--test", min=0, help="Test objects PER CATEGORY."),
-    seed: int = typer.Option(0, "--seed", help="Run seed; same seed, byte-identical point files."),
+    train: int = typer.Option(0, "--train", min=0, max=MAX_OBJECTS, help="Training objects PER CATEGORY."),
+    val: int = typer.Option(0, "--val", min=0, max=MAX_OBJECTS, help="Validation objects PER CATEGORY."),
+    test: int = typer.Option(0, "--test", min=0, max=MAX_OBJECTS, help="Test objects PER CATEGORY."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Run seed; same seed, byte-identical point files."),
     views: int = typer.Option(8, "--views", min=1, max=100, help="Partial views per training object (PCN: 8)."),
     eval_views: int = typer.Option(1, "--eval-views", min=1, max=100, help="Partial views per val/test object (PCN: 1)."),
     workers: int = typer.Option(1, "--workers", "-w", min=1, max=256, help="Worker processes (results do not depend on it)."),
     categories: Optional[List[str]] = CATEGORIES_OPTION,
-    complete_points: int = typer.Option(16384, "--complete-points", min=16, help="Points per complete cloud (PCN: 16384)."),
+    complete_points: int = typer.Option(16384, "--complete-points", min=16, max=MAX_COMPLETE_POINTS, help="Points per complete cloud (PCN: 16384)."),
     generator: int = typer.Option(
         2, "--generator", min=1, max=2,
         help="Shape generator: 2 (rounded edges, hollow shades, rowing boats, shell chairs) or 1 (convex primitives only, the first models' data).",
@@ -52,6 +56,7 @@ def synth(
     from escape_cli.data.synth import SynthConfig, check_config, prepare_output, synthesize
     from escape_cli.errors import DatasetError
     from escape_cli.extras import require
+    from escape_cli.io.files import check_output_folder
 
     if train + val + test == 0:
         raise DatasetError("nothing to generate: give --train, --val and/or --test a positive count (objects per category)")
@@ -65,6 +70,7 @@ def synth(
     )
     check_config(config)
     require("open3d", "escape dataset synth")  # the synth extra: depth views are ray-cast with open3d
+    check_output_folder(out)  # a file, or a folder that cannot be made or written
     prepare_output(out, overwrite)  # refuse a non-empty folder before any progress bar shows
     total = len(config.jobs())
     quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)

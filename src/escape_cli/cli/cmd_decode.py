@@ -28,6 +28,7 @@ def command(
     Prints one summary line on stderr (points, mean/max residual, anchor spread)
     unless -q.
     """
+    import numpy as np
 
     from escape_cli.errors import InputFileError, OutputFileError, PointCloudError
     from escape_cli.io import display_name, output_format, read_array, read_points, write_points
@@ -39,7 +40,7 @@ def command(
     out_format = output_format(output, fmt)  # an unknown format fails now, not after the work
     if residuals and out_format == "npy":
         raise OutputFileError("--residuals needs a ply, pcd, xyz, txt, pts, csv or npz output (npy holds x y z only)")
-    check_output(output, overwrite)
+    check_output(output, overwrite, inputs=[distances_path, anchors_path])
 
     # Distances before anchors: in `encode -o - | decode - --anchors A`, A is complete
     # once stdin has ended.
@@ -51,8 +52,10 @@ def command(
             f"{distances_name} has {distances.shape[1]} distances per point but {anchors_path} holds "
             f"{len(anchors)} anchors; decode with the anchors the distances were encoded with"
         )
-    with errors_about(str(anchors_path)):
+    _check_not_negative(distances, distances_name)
+    with errors_about(str(anchors_path)), np.errstate(all="ignore"):
         result = reconstruct(distances, anchors, method=solver)
+    _check_decoded(result.points, distances, anchors, distances_name, str(anchors_path))
 
     fields = {"residual": result.residuals} if residuals else None
     write_points(output, result.points, fmt, overwrite=overwrite, fields=fields, binary=not ascii_body)
@@ -61,3 +64,34 @@ def command(
         f"decoded {len(result.points)} points from {len(anchors)} anchors ({solver}): residual mean "
         f"{result.residuals.mean():.3g}, max {result.residuals.max():.3g}; anchors {spread} -> {output}"
     )
+
+
+def _check_not_negative(distances, name: str) -> None:
+    """Distances are never negative: a negative one is a damaged or foreign file, not noise to solve."""
+    from escape_cli.errors import PointCloudError
+
+    negative = distances < 0  # (M, K)
+    if negative.any():
+        count, rows = int(negative.sum()), int(negative.any(axis=1).sum())
+        raise PointCloudError(
+            f"{name}: {count} negative distance{'s' if count > 1 else ''} in {rows} of {len(distances)} rows "
+            f"(smallest {float(distances.min()):.3g}); distances to anchors are never negative"
+        )
+
+
+def _check_decoded(points, distances, anchors, name: str, anchors_name: str) -> None:
+    """Refuse coordinates that are not finite or too large to use: the distances do not fit the anchors."""
+    import numpy as np
+
+    from escape_cli.core.checks import MAX_MAGNITUDE
+    from escape_cli.errors import PointCloudError
+
+    with np.errstate(all="ignore"):
+        largest = float(np.max(np.abs(points))) if points.size else 0.0
+    if not np.isfinite(largest) or largest > MAX_MAGNITUDE:
+        spread = float(np.max(np.abs(anchors - anchors.mean(axis=0))))
+        got = "non-finite coordinates" if not np.isfinite(largest) else f"coordinates up to {largest:.3g}"
+        raise PointCloudError(
+            f"{name}: the distances (up to {float(distances.max()):.3g}) do not fit the anchors of {anchors_name} "
+            f"(within {spread:.3g} of their centre): decoding gives {got}"
+        )

@@ -53,7 +53,8 @@ def command(
     from escape_cli.core.anchors import select_anchors
     from escape_cli.core.encoding import distance_matrix
     from escape_cli.errors import OutputFileError
-    from escape_cli.io import display_name, read_points, write_array, write_points
+    from escape_cli.io import display_name, output_format, read_points, write_array, write_points
+    from escape_cli.io.files import check_distinct_outputs
 
     if output == "-" and anchors_out is None:
         raise OutputFileError("-o - writes the distances to stdout; give --anchors-out FILE for the anchors")
@@ -62,8 +63,10 @@ def command(
     anchors_path = anchors_out if anchors_out is not None else default_anchors_path(output)
     if anchors_path == "-" and output == "-":
         raise OutputFileError("distances and anchors cannot both go to stdout")
-    check_output(output, overwrite)
-    check_output(anchors_path, overwrite)
+    output_format(anchors_path)  # an unknown format fails now, not after the work
+    check_distinct_outputs({"--output": output, "--anchors-out": anchors_path})
+    check_output(output, overwrite, inputs=[input_path])
+    check_output(anchors_path, overwrite, inputs=[input_path])
 
     points = read_points(input_path, input_format)  # (N, 3)
     with errors_about(display_name(input_path)):

@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import JSON, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
+from escape_cli.cli.options import JSON, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS, number_check
 
 
 def command(
@@ -21,9 +21,9 @@ def command(
     split: str = typer.Option("test", "--split", help="PCN split: train, val or test."),
     categories: Optional[List[str]] = typer.Option(None, "--categories", "-c", help="Category names or synsets (repeatable)."),
     rotate: bool = typer.Option(False, "--rotate", help="Also evaluate rotated inputs (paper protocol) and report the gap."),
-    seed: int = typer.Option(0, "--seed", help="Seed of rotations, noise and point removal."),
-    noise: float = typer.Option(0.0, "--noise", min=0.0, help="Gaussian noise sigma added to the inputs."),
-    drop: float = typer.Option(0.0, "--drop", min=0.0, max=0.95, help="Share of input points removed at random."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Seed of rotations, noise and point removal."),
+    noise: float = typer.Option(0.0, "--noise", callback=number_check(minimum=0.0), help="Gaussian noise sigma added to the inputs."),
+    drop: float = typer.Option(0.0, "--drop", callback=number_check(minimum=0.0, maximum=0.95), help="Share of input points removed at random."),
     limit: Optional[int] = typer.Option(None, "--limit", min=1, help="At most N objects per category."),
     model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: the shipped one)."),
     baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
@@ -54,7 +54,8 @@ def command(
         evaluate_pairs,
         evaluate_pcn,
     )
-    from escape_cli.inference import load_model
+    from escape_cli.inference import default_model_path, load_model
+    from escape_cli.io.files import check_output_folder
     from escape_cli.pipeline import complete
     from escape_cli.core.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
 
@@ -62,12 +63,16 @@ def command(
         raise typer.BadParameter("must be pcn, pair, pairs or kitti", param_hint="--dataset")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
-    check_output(json_path, overwrite)
-    if save is not None and save.is_dir() and any(save.iterdir()) and not overwrite:
-        from escape_cli.errors import OutputExistsError
+    model_path = model if model is not None else default_model_path()
+    inputs = [root, reference, model_path, model_path.with_suffix(".json")]
+    check_output(json_path, overwrite, inputs=inputs)
+    if save is not None:
+        check_output_folder(save, inputs=[root, reference])
+        if save.is_dir() and any(save.iterdir()) and not overwrite:
+            from escape_cli.errors import OutputExistsError
 
-        raise OutputExistsError(f"{save} is not empty (use --overwrite to write into it)")
-    net = load_model(str(model) if model else None)
+            raise OutputExistsError(f"{save} is not empty (use --overwrite to write into it)")
+    net = load_model(str(model_path))
 
     def escape_completer(points):
         return complete(points, net, normalize=normalize, keep_input=keep_input, snap_radius=snap_radius).points

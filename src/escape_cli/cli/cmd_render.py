@@ -28,11 +28,12 @@ def command(
     """Draw clouds side by side (columns) in fixed orthographic views (rows), y up."""
     from escape_cli.errors import InputFileError, OutputFileError
     from escape_cli.io import read_point_fields
-    from escape_cli.render_png import render_clouds, write_png
+    from escape_cli.io.files import write_output_bytes
+    from escape_cli.render_png import encode_png, render_clouds
 
     if output.suffix.lower() != ".png":
         raise OutputFileError(f"{output}: the output must be a .png file")
-    check_output(output, overwrite)
+    check_output(output, overwrite, inputs=[*inputs, *(color_by or [])])
     if color_by and len(color_by) not in (1, len(inputs)):
         raise InputFileError(f"--color-by given {len(color_by)} times for {len(inputs)} inputs; give it once or once per input")
     clouds, values = [], []
@@ -42,10 +43,7 @@ def command(
         source = None if not color_by else color_by[0 if len(color_by) == 1 else i]
         values.append(None if source is None else _values_for(source, points, fields, path))
     image = render_clouds(clouds, values, n_views=views, size=size)
-    try:
-        write_png(output, image)
-    except OSError as err:
-        raise OutputFileError(f"{output}: cannot write ({err.strerror or err})") from None
+    write_output_bytes(output, encode_png(image), overwrite=overwrite)  # atomic, never over an input
     print_summary(f"escape: drew {len(clouds)} cloud(s) x {views} view(s) to {output}")
 
 

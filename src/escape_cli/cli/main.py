@@ -4,13 +4,24 @@ Each subcommand lives in its own module `cmd_<name>.py`; heavy libraries are imp
 inside the command bodies so that `escape --help` stays fast. `python -m escape_cli` runs
 the same `main()`; `escape --install-completion` installs shell completion (bash, zsh,
 fish, PowerShell).
+
+`main` keeps the CLI's promises: every user error, usage error and environment failure
+is one line `escape: error: ...` on stderr (control characters escaped) with a non-zero
+exit code, never a traceback: 2 for usage, 1 for data and for a full disk or memory,
+130 for Ctrl-C (`escape: interrupted`), 141 for a closed stdout pipe (quietly, as a Unix
+tool killed by SIGPIPE), 70 for a bug (`internal error`; `-vv` shows the traceback).
+Python warnings (numpy's, onnxruntime's) become debug log lines, shown with `-vv`.
 """
 
 from __future__ import annotations
 
+import errno
+import functools
 import logging
+import os
 import sys
-from typing import Optional
+import warnings
+from typing import Callable, Optional
 
 import typer
 
@@ -60,20 +71,40 @@ def _global_options(
     logging.basicConfig(level=level, format="escape: %(levelname)s: %(message)s", stream=sys.stderr, force=True)
 
 
-app.command("anchors")(cmd_anchors.command)
-app.command("encode")(cmd_encode.command)
-app.command("decode")(cmd_decode.command)
-app.command("complete")(cmd_complete.command)
-app.command("eval")(cmd_eval.command)
-app.command("export-onnx")(cmd_export_onnx.command)
-app.command("train")(cmd_train.command)
-app.command("average-checkpoints")(cmd_average_checkpoints.command)
-app.command("render")(cmd_render.command)
+
+def _guarded(command: Callable) -> Callable:
+    """Run a command inside `escape_cli.io.files.guard_inputs`: no write may replace a file it read."""
+
+    @functools.wraps(command)
+    def run(*args, **kwargs):
+        from escape_cli.io.files import guard_inputs  # numpy comes with escape_cli.io: not for --help
+
+        with guard_inputs():
+            return command(*args, **kwargs)
+
+    return run
+
+
+app.command("anchors")(_guarded(cmd_anchors.command))
+app.command("encode")(_guarded(cmd_encode.command))
+app.command("decode")(_guarded(cmd_decode.command))
+app.command("complete")(_guarded(cmd_complete.command))
+app.command("eval")(_guarded(cmd_eval.command))
+app.command("export-onnx")(_guarded(cmd_export_onnx.command))
+app.command("train")(_guarded(cmd_train.command))
+app.command("average-checkpoints")(_guarded(cmd_average_checkpoints.command))
+app.command("render")(_guarded(cmd_render.command))
 app.add_typer(cmd_dataset.app, name="dataset")
 
 
 GLOBAL_OPTIONS = ("-q", "--quiet", "-v", "-vv", "-vvv", "--verbose", "--version")
-PROG_NAME = "escape"  # also under `python -m escape_cli`: usage lines, and the completion variable _ESCAPE_COMPLETE
+
+# Errors of the machine rather than of escape or its input: one line, exit code 1.
+ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: what a shell reports for a tool killed by a closed pipe
+EXIT_INTERNAL = 70  # EX_SOFTWARE
 
 
 def usage_error_line(err: typer.TyperException) -> str:
@@ -94,40 +125,169 @@ def usage_error_line(err: typer.TyperException) -> str:
     if kind == "MissingParameter" and hint:
         return f"{hint}: missing (required)"
     if kind == "BadParameter" and hint:
-        return f"{str(hint).strip(chr(39))}: {' '.join(str(err.message).split())}"
+        return f"{str(hint).strip(chr(39))}: {bad_value_message(err)}"
     return " ".join(err.format_message().split())
 
 
-def main() -> None:
-    """Run the CLI; turn usage errors and escape's own errors into one line and an exit code."""
+def bad_value_message(err: typer.TyperException) -> str:
+    """What is wrong with an option's value, in the wording of `escape_cli.core.params`.
+
+    typer validates values with pydantic and carries its error as the cause; its
+    structured record (type, limit, input) gives "must be at least 1, got 0" rather than
+    "Input should be greater than or equal to 1".
+    """
+    message = " ".join(str(err.message).split())
     try:
-        code = app(standalone_mode=False, prog_name=PROG_NAME)
-    except typer.Abort:
-        print("escape: interrupted", file=sys.stderr)
-        sys.exit(130)
-    except typer.TyperException as err:  # click's errors as typer carries them
-        if type(err).__name__ == "NoArgsIsHelpError":
-            print(err.format_message(), file=sys.stderr)
-            sys.exit(2)
-        if getattr(err, "exit_code", 1) == 2:
-            print(f"escape: error: {usage_error_line(err)} (see --help)", file=sys.stderr)
-            sys.exit(2)
-        print(f"escape: error: {' '.join(err.format_message().split())}", file=sys.stderr)
-        sys.exit(getattr(err, "exit_code", 1))
-    except EscapeError as err:
-        print(f"escape: error: {err}", file=sys.stderr)
-        sys.exit(err.exit_code)
-    except KeyboardInterrupt:
-        print("escape: interrupted", file=sys.stderr)
-        sys.exit(130)
-    except BrokenPipeError:
-        sys.exit(141)
-    except Exception as err:  # a bug: keep it one line unless -vv asked for the traceback
-        if log.isEnabledFor(logging.DEBUG):
+        record = err.__cause__.errors()[0]  # a pydantic ValidationError, duck-typed
+        kind, limits, given = record["type"], record.get("ctx") or {}, record.get("input")
+    except (AttributeError, IndexError, KeyError, TypeError):
+        return message
+    got = "" if given is None else f", got {_shown(given)}"
+    for key, wording in (("ge", "at least"), ("gt", "greater than"), ("le", "at most"), ("lt", "less than")):
+        if key in limits and kind.startswith(("greater_than", "less_than")):
+            return f"must be {wording} {limits[key]:g}{got}"
+    if kind.startswith("int_"):
+        return f"must be an integer{got}"
+    if kind.startswith("float_"):
+        return f"must be a number{got}"
+    if kind == "value_error":
+        return message.removeprefix("Value error, ").rstrip(".")
+    return message
+
+
+def _shown(value) -> str:
+    """A value as the user typed it: numbers bare, anything else quoted."""
+    try:
+        float(value)
+        return str(value)
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def one_line(text: str) -> str:
+    """`text` as one printable line: newlines, escape sequences and other control characters escaped."""
+    out = []
+    for char in str(text):
+        if char.isprintable():
+            out.append(char)
+        elif char in "\n\r\t":
+            out.append({"\n": "\\n", "\r": "\\r", "\t": "\\t"}[char])
+        else:
+            code = ord(char)
+            out.append(f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}")
+    return "".join(out)
+
+
+def main() -> None:
+    """Run the CLI; turn every error into one line and an exit code (see the module docstring)."""
+    sys.exit(run(sys.argv[1:]))
+
+
+def run(argv: list[str]) -> int:
+    """Run ``escape ARGV...``; returns the exit code, having printed any error as one line."""
+    with warnings.catch_warnings():
+        warnings.showwarning = _warning_to_log
+        stdout_before = _stdout_identity()
+        try:
+            code = _invoke(argv)
+            sys.stdout.flush()  # a full disk or a closed pipe under stdout shows here, not at exit
+            return code
+        except SystemExit as exit_:
+            # rich (help pages, tables) answers a broken pipe by pointing stdout at
+            # /dev/null and exiting with 1: the same event as our BrokenPipeError
+            devnull = _devnull_identity()
+            if exit_.code == 1 and stdout_before not in (None, devnull) and _stdout_identity() == devnull:
+                return EXIT_BROKEN_PIPE
             raise
-        print(f"escape: internal error: {type(err).__name__}: {err} (run with -vv for the traceback)", file=sys.stderr)
-        sys.exit(70)
-    sys.exit(code if isinstance(code, int) else 0)
+        except BrokenPipeError:
+            _detach_stdout()
+            return EXIT_BROKEN_PIPE
+        except KeyboardInterrupt:
+            return _fail("interrupted", EXIT_INTERRUPTED, prefix="escape: ")
+        except typer.Abort:
+            return _fail("interrupted", EXIT_INTERRUPTED, prefix="escape: ")
+        except typer.TyperException as err:  # click's errors as typer carries them
+            if type(err).__name__ == "NoArgsIsHelpError":
+                print(err.format_message(), file=sys.stderr)
+                return 2
+            if getattr(err, "exit_code", 1) == 2:
+                return _fail(f"{usage_error_line(err).rstrip('.')} (see --help)", 2)
+            return _fail(" ".join(err.format_message().split()), getattr(err, "exit_code", 1))
+        except EscapeError as err:
+            return _fail(str(err), err.exit_code)
+        except MemoryError:
+            return _fail("out of memory (a smaller cloud, or fewer --points, may fit)", 1)
+        except OSError as err:
+            if err.errno not in ENVIRONMENT_ERRNOS or log.isEnabledFor(logging.DEBUG):
+                return _internal_error(err)
+            where = f" {err.filename}" if err.filename else " to stdout"  # files' errors name them
+            _detach_stdout()
+            return _fail(f"cannot write{where}: {err.strerror or err}", 1)
+        except Exception as err:  # a bug: keep it one line unless -vv asked for the traceback
+            return _internal_error(err)
+
+
+PROG_NAME = "escape"  # also under `python -m escape_cli`: usage lines, and the completion variable _ESCAPE_COMPLETE
+
+
+def _invoke(argv: list[str]) -> int:
+    """Parse and run the command (typer's own runner would swallow Ctrl-C and broken pipes)."""
+    if os.environ.get(f"_{PROG_NAME.upper()}_COMPLETE"):  # the shell asks for completions: typer answers and exits
+        return app(args=list(argv), prog_name=PROG_NAME)
+    command = typer.main.get_command(app)
+    try:
+        with command.make_context(PROG_NAME, list(argv)) as ctx:
+            result = command.invoke(ctx)
+    except typer.Exit as exit_:  # --help, --version
+        return exit_.exit_code
+    return result if isinstance(result, int) else 0
+
+
+def _fail(message: str, code: int, prefix: str = "escape: error: ") -> int:
+    try:
+        print(prefix + one_line(message), file=sys.stderr, flush=True)
+    except OSError:  # stderr itself is gone: the exit code still says it
+        pass
+    return code
+
+
+def _internal_error(err: Exception) -> int:
+    if log.isEnabledFor(logging.DEBUG):
+        raise err
+    message = f"internal error: {type(err).__name__}: {err} (run with -vv for the traceback)"
+    return _fail(message, EXIT_INTERNAL, prefix="escape: ")
+
+
+def _warning_to_log(message, category, filename, lineno, file=None, line=None) -> None:
+    """`warnings.showwarning` for the CLI: a debug line instead of two raw lines on stderr."""
+    log.debug("%s: %s (%s:%d)", category.__name__, message, filename, lineno)
+
+
+def _stdout_identity() -> tuple[int, int] | None:
+    """(device, inode) of what stdout's file descriptor points at; None for an in-memory stream."""
+    try:
+        stat = os.fstat(sys.stdout.fileno())
+    except (AttributeError, OSError, ValueError):
+        return None
+    return stat.st_dev, stat.st_ino
+
+
+def _devnull_identity() -> tuple[int, int]:
+    stat = os.stat(os.devnull)
+    return stat.st_dev, stat.st_ino
+
+
+def _detach_stdout() -> None:
+    """Point stdout at /dev/null so that the interpreter's last flush cannot fail again."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # an in-memory stream: nothing to detach
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ import numpy as np
 from escape_cli.core.checks import as_points
 from escape_cli.errors import InputFileError, PointCloudError
 from escape_cli.formats import CLOUD_SUFFIXES, FORMAT_LIST, FORMATS
-from escape_cli.io.common import Fields, coordinate_dtype_for
+from escape_cli.io.common import Fields, coordinate_dtype_for, storage_dtype
 from escape_cli.io.files import display_name, is_stdio, read_input_bytes, write_output_bytes
 from escape_cli.io.h5 import is_h5, parse_h5, serialize_h5
 from escape_cli.io.las import is_las, parse_las, serialize_las, template_layout
@@ -200,6 +200,9 @@ def write_points(
         output copies (`escape complete` passes its input); ignored for other outputs,
         or when `like` is not a LAS file. Without it LAS/LAZ get `las.layout_for`.
 
+    float32 gives way to float64 for coordinates (and fields) beyond its range, so a file
+    never holds an infinity the data did not have.
+
     Raises
     ------
     OutputExistsError
@@ -218,6 +221,7 @@ def write_points(
     coordinate_dtype = coordinate_dtype_for(points) if coordinate_dtype is None else np.dtype(coordinate_dtype)
     if coordinate_dtype not in COORDINATE_DTYPES:
         raise ValueError(f"coordinate_dtype must be float32 or float64, not {coordinate_dtype}")
+    coordinate_dtype = storage_dtype(points, coordinate_dtype)  # never inf (or 0) where float32 cannot hold them
     if fmt == "ply":
         data = serialize_ply(points, fields, binary=binary, coordinate_dtype=coordinate_dtype)
     elif fmt == "pcd":

@@ -12,6 +12,37 @@ from escape_cli.errors import InputFileError
 #   xyz : (N, 3) float64 (non-finite rows still in), fields : name -> (N,) float64.
 Fields = dict[str, np.ndarray]
 
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)  # the smallest normal float32
+
+
+def storage_dtype(values, preferred=np.float32) -> np.dtype:
+    """`preferred` (float32 or float64), or float64 where float32 cannot hold `values`.
+
+    float32 overflows to inf beyond 3.4e38, and a cloud whose values all lie below its
+    normal range (1.2e-38) would lose its precision or become zeros: a file must never
+    hold infinities (or zeros) the data did not have.
+
+    Parameters
+    ----------
+    values : array_like of float
+    preferred : numpy dtype
+
+    Returns
+    -------
+    numpy dtype
+    """
+    preferred = np.dtype(preferred)
+    if preferred == np.float64:
+        return preferred
+    magnitudes = np.abs(np.asarray(values, dtype=np.float64))
+    magnitudes = magnitudes[np.isfinite(magnitudes)]
+    largest = float(magnitudes.max()) if magnitudes.size else 0.0
+    if largest > FLOAT32_MAX or 0.0 < largest < FLOAT32_TINY:
+        return np.dtype(np.float64)
+    return preferred
+
+
 # Enough significant digits to give back the exact binary value.
 SIGNIFICANT_DIGITS = {np.dtype(np.float32): 9, np.dtype(np.float64): 17}
 
@@ -47,6 +78,34 @@ def coordinate_dtype_for(points: np.ndarray) -> np.dtype:
     return np.dtype(np.float64)
 
 
+def printable(raw: bytes | str, limit: int = 60) -> str:
+    """At most `limit` characters of `raw` for a message: control characters and bytes
+    that are not ASCII text escaped (``\\x1b``), so a garbage file cannot garble the terminal."""
+    text = raw.decode("ascii", errors="backslashreplace") if isinstance(raw, bytes) else str(raw)
+    shown = "".join(c if c.isprintable() and ord(c) < 0x7F else _escaped(c) for c in text[:limit])
+    return shown + ("..." if len(text) > limit else "")
+
+
+def counted(count: int, noun: str) -> str:
+    """``1 byte``, ``3 bytes``: a count with its noun."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
+PADDING = b" \t\r\n\x00"
+"""Bytes a writer may leave after a body: line endings, and zeros (PCL pads binary_compressed files)."""
+
+
+def _escaped(char: str) -> str:
+    code = ord(char)
+    return f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}"
+
+
+def trailing_data(data: bytes, end: int) -> int:
+    """How many bytes after offset `end` are data rather than padding (0 if only `PADDING`)."""
+    rest = data[end:]
+    return len(rest) if rest.strip(PADDING) else 0
+
+
 def tokens_to_float(tokens: list[bytes], name: str, what: str) -> np.ndarray:
     """Convert number tokens to float64, or raise a one-line error naming the bad token.
 
@@ -70,8 +129,7 @@ def tokens_to_float(tokens: list[bytes], name: str, what: str) -> np.ndarray:
             try:
                 float(token)
             except (ValueError, UnicodeDecodeError):
-                shown = token[:20].decode("ascii", errors="backslashreplace")
-                raise InputFileError(f"{name}: {what}: '{shown}' is not a number") from None
+                raise InputFileError(f"{name}: {what}: '{printable(token, 20)}' is not a number") from None
         raise InputFileError(f"{name}: {what}: not numbers") from None
 
 

@@ -1,7 +1,15 @@
-"""Bytes in and out of files or stdin/stdout, with atomic, no-clobber writes.
+"""Bytes in and out of files or stdin/stdout, with atomic, no-clobber writes that never touch an input.
 
 Every reader in `escape_cli.io` reads the whole input into memory first (point clouds
 of a few million points at most), so files and pipes are handled the same way.
+
+The rules for an output, in one place (`check_output_path`, called by every command
+before any work, and again by `write_output_bytes`): it is never one of the inputs (the
+same path, a symlink to it or a hard link: the same file, whatever ``--overwrite``
+says), never a directory, replaces an existing file only with ``overwrite``, and its
+directory must exist and be writable. Within `guard_inputs()` (the CLI runs every
+command inside it) every file read is remembered, and a write that would replace one
+of them is refused too.
 """
 
 from __future__ import annotations
@@ -9,11 +17,17 @@ from __future__ import annotations
 import errno
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterable, Iterator, Optional
 
 from escape_cli.errors import InputFileError, OutputExistsError, OutputFileError
 
 STDIO = "-"
+NEVER_OVER_INPUTS = "escape never writes over its inputs, with or without --overwrite; give another output file"
+
+_inputs_read: Optional[set[tuple[int, int]]] = None
+"""(device, inode) of every file read inside `guard_inputs()`; None outside it."""
 
 
 def is_stdio(path: str | Path) -> bool:
@@ -38,6 +52,8 @@ def read_input_bytes(path: str | Path) -> bytes:
         return sys.stdin.buffer.read()
     try:
         with open(path, "rb") as handle:
+            if _inputs_read is not None:
+                _inputs_read.add(_identity(os.fstat(handle.fileno())))
             return handle.read()
     except FileNotFoundError:
         raise InputFileError(f"{path}: no such file") from None
@@ -49,43 +65,215 @@ def read_input_bytes(path: str | Path) -> bytes:
         raise InputFileError(f"{path}: cannot read ({err.strerror or err})") from None
 
 
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when `a` and `b` name the same file: the same path once symlinks and ``..`` are
+    resolved, or the same device and inode (a hard link). ``-`` is never a file."""
+    if is_stdio(a) or is_stdio(b):
+        return False
+    try:
+        if Path(a).resolve() == Path(b).resolve():
+            return True
+        return _identity(os.stat(a)) == _identity(os.stat(b))
+    except (OSError, RuntimeError):  # missing (then no inode to share), or a symlink loop
+        return False
+
+
+def check_not_input(path: str | Path | None, inputs: Iterable) -> None:
+    """Raise OutputFileError when the output `path` is one of `inputs` (see `same_file`).
+
+    None and ``-`` pass; so do None and ``-`` among `inputs`.
+    """
+    if path is None or is_stdio(path):
+        return
+    for source in inputs:
+        if source is not None and same_file(path, source):
+            raise OutputFileError(f"{_input_clash(Path(path), source)}: {NEVER_OVER_INPUTS}")
+
+
+def check_output_path(
+    path: str | Path | None, *, overwrite: bool = False, inputs: Iterable = (), make_parents: bool = False
+) -> None:
+    """Refuse an output before any work is done (None and ``-``, stdout, always pass).
+
+    Parameters
+    ----------
+    path : str or Path or None
+        The output file.
+    overwrite : bool
+        Whether an existing file may be replaced (never an input).
+    inputs : iterable of str or Path
+        The command's input files (None and ``-`` are skipped).
+    make_parents : bool
+        The writer creates missing directories: check the nearest existing one instead.
+
+    Raises
+    ------
+    OutputFileError
+        `path` is one of `inputs` (the same path, a symlink to it, or a hard link), a
+        directory, or its directory is missing, not a directory or not writable.
+    OutputExistsError
+        `path` exists and `overwrite` is false.
+    """
+    if path is None or is_stdio(path):
+        return
+    target = Path(path)
+    check_not_input(target, inputs)
+    if target.is_dir():
+        raise OutputFileError(f"{target} is a directory; give a file name")
+    if target.exists() and not overwrite:
+        raise OutputExistsError(f"{target} exists (use --overwrite to replace it)")
+    directory = _nearest_existing(target.parent) if make_parents else target.parent
+    check_output_directory(directory, target)
+
+
+def check_output_folder(folder: str | Path, *, inputs: Iterable = ()) -> None:
+    """Refuse an output folder (created when missing) before any work is done.
+
+    Raises
+    ------
+    OutputFileError
+        `folder` is a file, is or lies inside one of the `inputs` (folders whose files
+        are read: what is written there could become an input), or it cannot be created
+        or written into.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise OutputFileError(f"{folder} is a file, not a folder")
+    resolved = folder.resolve()
+    for source in inputs:
+        if source is None or is_stdio(source):
+            continue
+        other = Path(source).resolve()
+        if resolved == other or other in resolved.parents:
+            never = NEVER_OVER_INPUTS.replace("file", "folder")
+            raise OutputFileError(f"output folder {folder} is inside the input {source}: {never}")
+    check_output_directory(_nearest_existing(folder), folder)
+
+
+def check_output_directory(directory: str | Path, target: str | Path | None = None) -> None:
+    """Raise OutputFileError unless `directory` exists, is a directory and is writable.
+
+    `target` (what is to be written in it) only changes the message.
+    """
+    directory = Path(directory)
+    what = f"cannot write {target}" if target is not None else f"cannot write into {directory}"
+    if not directory.exists():
+        raise OutputFileError(f"{what}: directory {directory} does not exist")
+    if not directory.is_dir():
+        raise OutputFileError(f"{what}: {directory} is not a directory")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise OutputFileError(f"{what}: permission denied (directory {directory})")
+
+
+def check_distinct_outputs(outputs: dict[str, str | Path | None]) -> None:
+    """Raise OutputFileError when two of a command's outputs ({option: path}) are the same file."""
+    named = [(option, path) for option, path in outputs.items() if path is not None and not is_stdio(path)]
+    for i, (option, path) in enumerate(named):
+        for other_option, other in named[i + 1 :]:
+            if same_file(path, other):
+                raise OutputFileError(f"{option} and {other_option} name the same file {path}; give two different files")
+
+
+@contextmanager
+def guard_inputs() -> Iterator[None]:
+    """Inside the block, remember every file read and refuse any write that would replace one.
+
+    The CLI runs each command in it; library callers who read a file and mean to write
+    over it stay free to.
+    """
+    global _inputs_read
+    saved, _inputs_read = _inputs_read, set()
+    try:
+        yield
+    finally:
+        _inputs_read = saved
+
+
 def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False) -> None:
     """Write `data` to a file atomically, or to stdout when `path` is ``-``.
 
     The bytes go to a temporary file in the target's directory, which then takes the
     target's name in one step: readers never see a half-written file, and a failed
     write leaves no trace. Without `overwrite` an existing target is never replaced,
-    even if it appears while writing.
+    even if it appears while writing; a file read inside `guard_inputs()` never is.
 
     Raises
     ------
     OutputExistsError
         The target exists and `overwrite` is false.
     OutputFileError
-        The target's directory is missing or not writable, or the target is a directory.
+        The target's directory is missing or not writable, the target is a directory or
+        an input, or stdout cannot take the bytes (a full disk).
+    BrokenPipeError
+        stdout is a pipe whose reader has gone.
     """
     if is_stdio(path):
-        sys.stdout.buffer.write(data)
-        sys.stdout.buffer.flush()
+        _write_stdout(data)
         return
     target = Path(path)
-    if target.is_dir():
-        raise OutputFileError(f"{target} is a directory; give a file name")
-    if target.exists() and not overwrite:
-        raise OutputExistsError(f"{target} exists (use --overwrite to replace it)")
-    directory = target.parent
-    if not directory.is_dir():
-        raise OutputFileError(f"cannot write {target}: directory {directory} does not exist")
+    check_output_path(target, overwrite=overwrite)
+    _check_not_read(target)
     temp = _create_temp_file(target)
     try:
         _write_all(temp, data, target)
         if overwrite:
+            _check_not_read(target)
             os.replace(temp, target)
         else:
             _link_without_clobbering(temp, target)
     finally:
         if temp.exists():
             temp.unlink()
+
+
+def _nearest_existing(directory: Path) -> Path:
+    """`directory`, or its closest ancestor that exists (what a mkdir -p would write into)."""
+    directory = Path(os.path.abspath(directory))
+    while not directory.exists() and directory != directory.parent:
+        directory = directory.parent
+    return directory
+
+
+def _identity(stat: os.stat_result) -> tuple[int, int]:
+    return stat.st_dev, stat.st_ino
+
+
+def _input_clash(target: Path, source) -> str:
+    if str(target) == str(source):
+        return f"{target} is also an input"
+    return f"{target} is the same file as the input {source}"
+
+
+def _check_not_read(target: Path) -> None:
+    if _inputs_read is None:
+        return
+    try:
+        identity = _identity(os.stat(target))
+    except OSError:
+        return  # not there (yet): nothing to destroy
+    if identity in _inputs_read:
+        raise OutputFileError(f"{target} is one of the inputs: {NEVER_OVER_INPUTS}")
+
+
+def _write_stdout(data: bytes) -> None:
+    """All of `data` to stdout: through its file descriptor when it has one (a short write
+    to a pipe whose reader has gone must end in EPIPE, not in silently dropped bytes)."""
+    stream = sys.stdout
+    try:
+        stream.flush()
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError):  # an in-memory stream (tests): no descriptor
+            stream.buffer.write(data)
+            stream.buffer.flush()
+            return
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+    except BrokenPipeError:
+        raise
+    except OSError as err:
+        raise OutputFileError(f"cannot write to stdout: {err.strerror or err}") from None
 
 
 def _create_temp_file(target: Path) -> Path:

@@ -12,7 +12,7 @@ import io
 import numpy as np
 
 from escape_cli.errors import InputFileError
-from escape_cli.io.common import Fields
+from escape_cli.io.common import Fields, storage_dtype
 
 NPY_MAGIC = b"\x93NUMPY"
 NPZ_MAGIC = b"PK\x03\x04"
@@ -56,6 +56,7 @@ def parse_array(data: bytes, name: str) -> np.ndarray:
         raise InputFileError(f"{name}: corrupt or truncated .npy file ({_first_line(err)})") from None
     if not np.issubdtype(array.dtype, np.number) and array.dtype != np.bool_:
         raise InputFileError(f"{name}: .npy array has non-numeric dtype {array.dtype}")
+    _refuse_complex(array, name)
     return array
 
 
@@ -106,10 +107,10 @@ def serialize_npy(points: np.ndarray, *, coordinate_dtype=np.float32) -> bytes:
 
 
 def serialize_npz(points: np.ndarray, fields: Fields, *, coordinate_dtype=np.float32) -> bytes:
-    """``.npz`` bytes: ``points`` (N, 3) plus one float32 (N,) array per field."""
+    """``.npz`` bytes: ``points`` (N, 3) plus one float32 (N,) array per field (float64 where needed)."""
     buffer = io.BytesIO()
     arrays = {"points": np.asarray(points, dtype=coordinate_dtype)}
-    arrays.update({key: np.asarray(value, dtype=np.float32) for key, value in fields.items()})
+    arrays.update({key: np.asarray(value, dtype=storage_dtype(value)) for key, value in fields.items()})
     np.savez(buffer, **arrays)
     return buffer.getvalue()
 
@@ -128,8 +129,17 @@ def _cloud_from_npz(data: bytes, name: str) -> tuple[np.ndarray, dict[str, np.nd
     cloud = arrays.pop(key)
     if not np.issubdtype(cloud.dtype, np.number):
         raise InputFileError(f"{name}: array '{key}' has non-numeric dtype {cloud.dtype}")
-    extra = {k: v.astype(np.float64) for k, v in arrays.items() if np.issubdtype(v.dtype, np.number)}
+    _refuse_complex(cloud, f"{name}: array '{key}'")
+    extra = {
+        k: v.astype(np.float64) for k, v in arrays.items() if np.issubdtype(v.dtype, np.number) and v.dtype.kind != "c"
+    }
     return cloud, extra
+
+
+def _refuse_complex(array: np.ndarray, name: str) -> None:
+    """Complex numbers are no coordinates: casting would drop the imaginary parts unseen."""
+    if array.dtype.kind == "c":
+        raise InputFileError(f"{name} holds complex numbers ({array.dtype}); real coordinates or distances are expected")
 
 
 def _first_line(err: Exception) -> str:

@@ -9,7 +9,11 @@ packed colours ``rgb``/``rgba`` are unpacked into ``red``, ``green``, ``blue`` (
 ``binary`` bodies store points one after the other (array of structs);
 ``binary_compressed`` bodies are LZF-compressed and store each field for all points
 in turn (struct of arrays), after two little-endian uint32: compressed and
-uncompressed size.
+uncompressed size. ``ascii`` bodies may separate values with blanks or commas.
+
+Field names are matched case-insensitively for the coordinates (PDAL writes ``X Y Z``).
+The header must match the body: fewer points than declared is "truncated", more data
+than declared (other than padding: line endings, zeros) is refused as well.
 """
 
 from __future__ import annotations
@@ -20,7 +24,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.errors import InputFileError
-from escape_cli.io.common import Fields, format_rows, pack_rows, tokens_to_float
+from escape_cli.io.common import (
+    PADDING, Fields, counted, format_rows, pack_rows, printable, storage_dtype, tokens_to_float, trailing_data,
+)
 from escape_cli.io.lzf import LZFError, lzf_decompress
 
 HEADER_KEYWORDS = (
@@ -123,7 +129,8 @@ def parse_pcd(data: bytes, name: str) -> tuple[np.ndarray, Fields]:
 def serialize_pcd(
     points: np.ndarray, fields: Fields, *, binary: bool = True, coordinate_dtype=np.float32
 ) -> bytes:
-    """A PCD v0.7 file: x, y, z then one float32 field per extra field; unorganised.
+    """A PCD v0.7 file: x, y, z then one float32 field per extra field (float64 where float32
+    cannot hold it, see `storage_dtype`); unorganised.
 
     Parameters
     ----------
@@ -138,7 +145,7 @@ def serialize_pcd(
     -------
     bytes
     """
-    dtypes = [np.dtype(coordinate_dtype)] * 3 + [np.dtype(np.float32)] * len(fields)
+    dtypes = [np.dtype(coordinate_dtype)] * 3 + [storage_dtype(values) for values in fields.values()]
     names = ["x", "y", "z", *fields]
     count = len(points)
     header = (
@@ -176,7 +183,7 @@ def _parse_header(data: bytes, name: str) -> PcdHeader:
         keyword, *values = line.split()
         keyword = keyword.upper()
         if keyword not in HEADER_KEYWORDS:
-            raise InputFileError(f"{name}: corrupt PCD header: unexpected line '{line[:60]}'")
+            raise InputFileError(f"{name}: corrupt PCD header: unexpected line '{printable(line)}'")
         entries["FIELDS" if keyword == "COLUMNS" else keyword] = values
         if keyword == "DATA":
             return _header_from_entries(entries, position, name)
@@ -192,17 +199,17 @@ def _header_from_entries(entries: dict[str, list[str]], body_offset: int, name: 
         try:
             return [int(v) for v in entries[key]]
         except ValueError:
-            raise InputFileError(f"{name}: corrupt PCD header ({key} {' '.join(entries[key])[:40]})") from None
+            raise InputFileError(f"{name}: corrupt PCD header ({key} {printable(' '.join(entries[key]), 40)})") from None
 
     def number(key: str, default: int | None = None) -> int:
         values = numbers(key, None if default is None else [default])
         if len(values) != 1 or values[0] < 0:
-            raise InputFileError(f"{name}: corrupt PCD header ({key} {' '.join(entries[key])[:40]})")
+            raise InputFileError(f"{name}: corrupt PCD header ({key} {printable(' '.join(entries[key]), 40)})")
         return values[0]
 
     data_kind = entries["DATA"][0].lower() if entries["DATA"] else ""
     if data_kind not in DATA_KINDS:
-        raise InputFileError(f"{name}: unsupported PCD DATA '{data_kind}' (ascii, binary, binary_compressed)")
+        raise InputFileError(f"{name}: unsupported PCD DATA '{printable(data_kind, 40)}' (ascii, binary, binary_compressed)")
     names = entries.get("FIELDS")
     if not names:
         raise InputFileError(f"{name}: corrupt PCD header (no FIELDS line)")
@@ -221,11 +228,13 @@ def _header_from_entries(entries: dict[str, list[str]], body_offset: int, name: 
         type_code = type_code.upper()
         if (type_code, size) not in VALID_TYPES or count < 1:
             raise InputFileError(
-                f"{name}: corrupt PCD header (field {field_name}: TYPE {type_code} SIZE {size} COUNT {count})"
+                f"{name}: corrupt PCD header (field {printable(field_name, 40)}: "
+                f"TYPE {printable(type_code, 8)} SIZE {size} COUNT {count})"
             )
         # repeated names (PCL pads with several "_" fields) get a suffix to stay apart
         unique_name = field_name if field_name not in names[:index] else f"{field_name}#{index}"
         fields.append(PcdField(unique_name, size, type_code, count))
+    fields = _lower_case_coordinates(fields)
     for axis in ("x", "y", "z"):
         if not any(f.name == axis and f.count == 1 for f in fields):
             raise InputFileError(f"{name}: PCD file has no '{axis}' field")
@@ -233,8 +242,21 @@ def _header_from_entries(entries: dict[str, list[str]], body_offset: int, name: 
     return PcdHeader(fields, points, data_kind, body_offset)
 
 
+def _lower_case_coordinates(fields: list[PcdField]) -> list[PcdField]:
+    """Fields ``X``, ``Y``, ``Z`` (any case) become ``x``, ``y``, ``z`` where no lower-case one exists."""
+    names = {f.name for f in fields}
+    renamed = []
+    for field in fields:
+        lower = field.name.lower()
+        if lower in ("x", "y", "z") and field.name != lower and lower not in names:
+            names.add(lower)
+            field = PcdField(lower, field.size, field.type_code, field.count)
+        renamed.append(field)
+    return renamed
+
+
 def _read_ascii(body: bytes, header: PcdHeader, name: str) -> dict[str, np.ndarray]:
-    tokens = body.split()
+    tokens = body.rstrip(PADDING).replace(b",", b" ").split()
     width = header.values_per_point
     expected = header.points * width
     if len(tokens) < expected:
@@ -243,7 +265,8 @@ def _read_ascii(body: bytes, header: PcdHeader, name: str) -> dict[str, np.ndarr
         )
     if len(tokens) > expected:
         raise InputFileError(
-            f"{name}: corrupt PCD body ({len(tokens)} values for {header.points} points x {width} values)"
+            f"{name}: {counted(len(tokens) - expected, 'value')} after the {header.points} points the header declares "
+            f"({width} values each); is its POINTS count wrong?"
         )
     table = tokens_to_float(tokens, name, "point data").reshape(header.points, width)
     columns: dict[str, np.ndarray] = {}
@@ -265,6 +288,7 @@ def _read_binary(body: bytes, header: PcdHeader, name: str) -> dict[str, np.ndar
         raise InputFileError(
             f"{name}: truncated PCD body ({header.points} points declared, {needed} bytes needed, {len(body)} found)"
         )
+    _check_end(body, needed, header, name)
     table = np.frombuffer(body, dtype=row, count=header.points)
     columns: dict[str, np.ndarray] = {}
     for i, field in enumerate(header.fields):
@@ -290,6 +314,7 @@ def _read_binary_compressed(body: bytes, header: PcdHeader, name: str) -> dict[s
         raise InputFileError(
             f"{name}: truncated PCD body ({compressed_size} compressed bytes announced, {len(body) - 8} found)"
         )
+    _check_end(body, 8 + compressed_size, header, name)
     try:
         raw = lzf_decompress(body[8 : 8 + compressed_size], uncompressed_size) if needed else b""
     except LZFError as err:
@@ -301,6 +326,15 @@ def _read_binary_compressed(body: bytes, header: PcdHeader, name: str) -> dict[s
         offset += values.nbytes
         columns[field.name] = values.reshape(header.points, field.count)
     return columns
+
+
+def _check_end(body: bytes, end: int, header: PcdHeader, name: str) -> None:
+    """Refuse bytes (other than padding: line endings, zeros) after the body the header declares."""
+    extra = trailing_data(body, end)
+    if extra:
+        raise InputFileError(
+            f"{name}: {counted(extra, 'byte')} after the {header.points} points the header declares; is its POINTS count wrong?"
+        )
 
 
 def _unpack_colour(packed: np.ndarray, field: PcdField, *, with_alpha: bool) -> Fields:

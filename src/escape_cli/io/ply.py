@@ -3,19 +3,27 @@
 Only the ``vertex`` element is read: its ``x``, ``y``, ``z`` properties (any numeric
 type) and its other scalar properties as fields. Other elements (faces, edges, ...)
 and list properties are skipped, wherever they sit in the file.
+
+The header must match the body: a body shorter than the header declares is
+"truncated"; data after the last element (other than padding: line endings, zeros) is refused too, as
+it means a wrong count in the header (checked unless elements with list properties
+follow the vertices, whose end would take reading every list).
 """
 
 from __future__ import annotations
 
+import re
 import struct
 from dataclasses import dataclass
 
 import numpy as np
 
 from escape_cli.errors import InputFileError
-from escape_cli.io.common import Fields, format_rows, pack_rows, tokens_to_float
+from escape_cli.io.common import (
+    PADDING, Fields, counted, format_rows, pack_rows, printable, storage_dtype, tokens_to_float, trailing_data,
+)
 
-MAGIC_LINES = (b"ply\n", b"ply\r\n")
+MAGIC_LINE = re.compile(rb"ply[ \t]*\r?\n")  # some writers leave blanks after the magic word
 # The header is a few hundred bytes; give up looking for end_header after this much.
 MAX_HEADER_BYTES = 1 << 20
 
@@ -72,8 +80,8 @@ class PlyHeader:
 
 
 def is_ply(data: bytes) -> bool:
-    """True when the bytes start like a PLY file."""
-    return data.startswith(MAGIC_LINES)
+    """True when the bytes start like a PLY file: a first line ``ply`` (trailing blanks allowed)."""
+    return MAGIC_LINE.match(data) is not None
 
 
 def parse_ply(data: bytes, name: str) -> tuple[np.ndarray, Fields]:
@@ -112,7 +120,8 @@ def parse_ply(data: bytes, name: str) -> tuple[np.ndarray, Fields]:
 def serialize_ply(
     points: np.ndarray, fields: Fields, *, binary: bool = True, coordinate_dtype=np.float32
 ) -> bytes:
-    """A PLY file with one vertex element: x, y, z then one float32 property per field.
+    """A PLY file with one vertex element: x, y, z then one float32 property per field
+    (float64 for a field float32 cannot hold, see `storage_dtype`).
 
     Parameters
     ----------
@@ -128,19 +137,20 @@ def serialize_ply(
     bytes
     """
     coordinate_dtype = np.dtype(coordinate_dtype)
-    coordinate_type = "double" if coordinate_dtype == np.float64 else "float"
+    field_dtypes = [storage_dtype(values) for values in fields.values()]
+    type_names = {np.dtype(np.float32): "float", np.dtype(np.float64): "double"}
     lines = [
         "ply",
         f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
         "comment written by escape",
         f"element vertex {len(points)}",
-        *(f"property {coordinate_type} {axis}" for axis in "xyz"),
-        *(f"property float {field}" for field in fields),
+        *(f"property {type_names[coordinate_dtype]} {axis}" for axis in "xyz"),
+        *(f"property {type_names[dtype]} {field}" for field, dtype in zip(fields, field_dtypes)),
         "end_header",
     ]
     header = ("\n".join(lines) + "\n").encode("ascii")
     columns = [points[:, 0], points[:, 1], points[:, 2], *fields.values()]
-    dtypes = [coordinate_dtype] * 3 + [np.dtype(np.float32)] * len(fields)
+    dtypes = [coordinate_dtype] * 3 + field_dtypes
     if not binary:
         return header + format_rows(columns, dtypes)
     return header + pack_rows(columns, dtypes)
@@ -148,7 +158,8 @@ def serialize_ply(
 
 def _parse_header(data: bytes, name: str) -> PlyHeader:
     if not is_ply(data):
-        raise InputFileError(f"{name}: not a PLY file (it does not start with 'ply')")
+        first = data[: data.find(b"\n")] if b"\n" in data[:64] else data[:20]
+        raise InputFileError(f"{name}: not a PLY file (its first line is '{printable(first, 20)}', not 'ply')")
     end = data.find(b"\nend_header", 0, MAX_HEADER_BYTES) + 1  # at the start of a line
     if end == 0:
         raise InputFileError(f"{name}: truncated or corrupt PLY header (no end_header line)")
@@ -172,7 +183,7 @@ def _parse_header(data: bytes, name: str) -> PlyHeader:
         elif keyword == "property" and elements:
             elements[-1].properties.append(_parse_property(words, name, line_number))
         else:
-            raise InputFileError(f"{name}: corrupt PLY header at line {line_number}: '{line.strip()[:60]}'")
+            raise InputFileError(f"{name}: corrupt PLY header at line {line_number}: '{printable(line.strip())}'")
     if encoding is None:
         raise InputFileError(f"{name}: corrupt PLY header (no valid 'format' line)")
     return PlyHeader(encoding, elements, body_offset)
@@ -183,7 +194,7 @@ def _parse_property(words: list[str], name: str, line_number: int) -> PlyPropert
         return PlyProperty(words[2], SCALAR_TYPES[words[1]])
     if len(words) == 5 and words[1] == "list" and words[2] in SCALAR_TYPES and words[3] in SCALAR_TYPES:
         return PlyProperty(words[4], SCALAR_TYPES[words[3]], SCALAR_TYPES[words[2]])
-    raise InputFileError(f"{name}: corrupt PLY header at line {line_number}: bad property '{' '.join(words)}'")
+    raise InputFileError(f"{name}: corrupt PLY header at line {line_number}: bad property '{printable(' '.join(words))}'")
 
 
 def _vertex_element_index(header: PlyHeader, name: str) -> int:
@@ -199,7 +210,7 @@ def _vertex_element_index(header: PlyHeader, name: str) -> int:
 
 def _read_ascii_vertex(body: bytes, elements: list[PlyElement], vertex_index: int, name: str) -> Fields:
     """Scalar vertex properties of an ascii body, skipping the elements before it."""
-    tokens = body.split()
+    tokens = body.rstrip(PADDING).split()
     position = 0
     for element in elements[:vertex_index]:
         position = _skip_ascii_element(tokens, position, element, name)
@@ -210,6 +221,7 @@ def _read_ascii_vertex(body: bytes, elements: list[PlyElement], vertex_index: in
         if end > len(tokens):
             found = max(0, (len(tokens) - position) // max(width, 1))
             raise InputFileError(f"{name}: truncated PLY body ({vertex.count} vertices declared, {found} found)")
+        _check_ascii_end(tokens, end, elements, vertex_index, name)
         values = tokens_to_float(tokens[position:end], name, "vertex data").reshape(vertex.count, width)
         return {p.name: values[:, i] for i, p in enumerate(vertex.properties)}
     scalar_positions: list[int] = []  # token index of each row's scalar values, row-major
@@ -222,11 +234,48 @@ def _read_ascii_vertex(body: bytes, elements: list[PlyElement], vertex_index: in
                 position += 1
     if position > len(tokens):
         raise InputFileError(f"{name}: truncated PLY body (vertex data cut off)")
+    _check_ascii_end(tokens, position, elements, vertex_index, name)
     scalars = [p for p in vertex.properties if not p.is_list]
     picked = [tokens[i] for i in scalar_positions]
     values = tokens_to_float(picked, name, "vertex data").reshape(vertex.count, len(scalars))
     return {p.name: values[:, i] for i, p in enumerate(scalars)}
 
+
+def _check_ascii_end(tokens: list[bytes], position: int, elements: list[PlyElement], vertex_index: int, name: str) -> None:
+    """Refuse values after the last element (`position`: the token after the vertices)."""
+    later = elements[vertex_index + 1 :]
+    if any(element.has_lists for element in later):
+        return  # finding the end would take walking every list
+    end = position + sum(element.count * len(element.properties) for element in later)
+    if end > len(tokens):
+        cut = next(e.name for e in later)
+        raise InputFileError(f"{name}: truncated PLY body ('{cut}' element cut off)")
+    if end < len(tokens):
+        raise InputFileError(
+            f"{name}: {counted(len(tokens) - end, 'value')} after the end of the PLY body the header declares "
+            f"({_declared(elements)}); is a count in the header wrong?"
+        )
+
+
+def _check_binary_end(data: bytes, position: int, header: PlyHeader, vertex_index: int, byte_order: str, name: str) -> None:
+    """Refuse bytes (other than padding: line endings, zeros) after the last element (`position`: the byte after the vertices)."""
+    later = header.elements[vertex_index + 1 :]
+    if any(element.has_lists for element in later):
+        return  # finding the end would take walking every list
+    end = position + sum(element.count * element.row_dtype(byte_order).itemsize for element in later)
+    if end > len(data):
+        cut = next(e.name for e in later)
+        raise InputFileError(f"{name}: truncated PLY body ('{cut}' element cut off)")
+    extra = trailing_data(data, end)
+    if extra:
+        raise InputFileError(
+            f"{name}: {counted(extra, 'byte')} after the end of the PLY body the header declares "
+            f"({_declared(header.elements)}); is a count in the header wrong?"
+        )
+
+
+def _declared(elements: list[PlyElement]) -> str:
+    return ", ".join(f"{element.name} {element.count}" for element in elements)
 
 
 def _skip_ascii_element(tokens: list[bytes], position: int, element: PlyElement, name: str) -> int:
@@ -247,7 +296,8 @@ def _ascii_list_length(tokens: list[bytes], position: int, name: str) -> int:
     except IndexError:
         raise InputFileError(f"{name}: truncated PLY body (list property cut off)") from None
     except ValueError:
-        raise InputFileError(f"{name}: corrupt PLY body (list length '{tokens[position][:20]!r}')") from None
+        shown = printable(tokens[position], 20)
+        raise InputFileError(f"{name}: corrupt PLY body (list length '{shown}' is not an integer)") from None
     if length < 0:
         raise InputFileError(f"{name}: corrupt PLY body (negative list length)")
     return length
@@ -269,6 +319,7 @@ def _read_binary_vertex(data: bytes, header: PlyHeader, vertex_index: int, name:
                 f"{name}: truncated PLY body ({vertex.count} vertices declared, "
                 f"{needed} bytes needed, {max(available, 0)} found)"
             )
+        _check_binary_end(data, position + needed, header, vertex_index, byte_order, name)
         table = np.frombuffer(data, dtype=row, count=vertex.count, offset=position)
         return {p.name: table[f"p{i}"] for i, p in enumerate(vertex.properties)}
     scalars = [p for p in vertex.properties if not p.is_list]
@@ -282,6 +333,9 @@ def _read_binary_vertex(data: bytes, header: PlyHeader, vertex_index: int, name:
                 values.append(_unpack(data, position, byte_order + prop.value_type, name))
                 position += np.dtype(prop.value_type).itemsize
         rows.append(values)
+    if position > len(data):
+        raise InputFileError(f"{name}: truncated PLY body (vertex data cut off)")
+    _check_binary_end(data, position, header, vertex_index, byte_order, name)
     table = np.array(rows, dtype=np.float64).reshape(vertex.count, len(scalars))
     return {p.name: table[:, i] for i, p in enumerate(scalars)}
 

@@ -14,6 +14,7 @@ import torch
 
 from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import ModelError, OutputExistsError
+from escape_cli.inference import quiet_onnxruntime
 from escape_cli.nn.checkpoint import load_checkpoint_model
 from escape_cli.nn.parity import PARITY_TOLERANCE, sample_input
 
@@ -66,6 +67,7 @@ def export_onnx(checkpoint: Path, output: Path, overwrite: bool = False, opset: 
             )
         with torch.no_grad():
             want = net(example)[0].numpy()
+        quiet_onnxruntime(ort)
         session = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
         single = example[:1].numpy()
         got = session.run(["distances"], {"partial_distances": example.numpy()})[0]

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from escape_cli.errors import ModelError
+from escape_cli.inference import quiet_onnxruntime
 from escape_cli.nn.config import ModelConfig
 from escape_cli.nn.model import EscapeNet
 from escape_cli.nn.parity import PARITY_TOLERANCE, sample_input
@@ -105,6 +106,7 @@ def checkpoint_from_onnx(onnx_path: Path) -> tuple[EscapeNet, dict]:
     with torch.no_grad():
         want = model(torch.from_numpy(example))[0].numpy()
     try:
+        quiet_onnxruntime(ort)
         session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
         got = session.run([meta.get("output_name", "distances")], {meta.get("input_name", "partial_distances"): example})[0]
     except Exception as err:

@@ -1,0 +1,318 @@
+"""The CLI's promises under hostile conditions: nothing lost, every failure one line, the right exit code.
+
+Outputs never replace an input; outputs, models and limits are checked before any
+work; a full disk, a closed pipe, Ctrl-C and a lack of memory each end in one line (or,
+for a closed pipe, quietly) with a documented exit code; Python warnings stay out of
+the user's terminal; onnxruntime's own logger is silenced.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import types
+import warnings
+from pathlib import Path
+
+import pytest
+from cli_runner import run_escape
+
+from escape_cli.io import read_points, write_points
+from tests_support import partial_cloud
+
+ESCAPE = Path(sys.executable).with_name("escape")
+
+
+@pytest.fixture
+def scan(tmp_path, rng) -> Path:
+    path = tmp_path / "scan.ply"
+    write_points(path, partial_cloud(rng, 700))
+    return path
+
+
+def _one_line(result_or_text, expected: str) -> str:
+    text = result_or_text if isinstance(result_or_text, str) else result_or_text.stderr
+    lines = text.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("escape: "), text
+    assert expected in lines[0], lines[0]
+    return lines[0]
+
+
+def _files(folder: Path) -> dict:
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+# ------------------------------------------------------------------ outputs are never inputs
+
+
+@pytest.mark.parametrize("link", ["same", "symlink", "hardlink"])
+def test_complete_never_writes_over_its_input(scan, tmp_path, tiny_model, link):
+    target = {"same": scan, "symlink": tmp_path / "link.ply", "hardlink": tmp_path / "hard.ply"}[link]
+    if link == "symlink":
+        target.symlink_to(scan)
+    elif link == "hardlink":
+        os.link(scan, target)
+    before = _files(tmp_path)
+    result = run_escape("complete", scan, "-o", target, "--overwrite", "--model", tiny_model)
+    assert result.exit_code == 1
+    _one_line(result, "escape never writes over its inputs, with or without --overwrite")
+    assert _files(tmp_path) == before
+
+
+def test_complete_anchors_out_is_never_an_input(scan, tmp_path, tiny_model):
+    result = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--anchors-out", scan, "--overwrite", "--model", tiny_model)
+    _one_line(result, "scan.ply is also an input")
+    assert not (tmp_path / "o.ply").exists()
+
+
+def test_batch_into_its_own_folder_is_refused_before_any_file(tmp_path, rng, tiny_model):
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for name in ("a", "b"):
+        write_points(folder / f"{name}.ply", partial_cloud(rng, 300))
+    before = _files(tmp_path)
+    result = run_escape("complete", folder, "-o", folder, "--overwrite", "--model", tiny_model)
+    _one_line(result, "is also an input")
+    assert _files(tmp_path) == before
+
+
+def test_writer_guard_refuses_a_file_read_in_the_same_command(tmp_path, rng):
+    """The last line of defence: inside guard_inputs no write replaces a file that was read."""
+    from escape_cli.errors import OutputFileError
+    from escape_cli.io.files import guard_inputs
+
+    path = tmp_path / "a.ply"
+    write_points(path, rng.normal(size=(20, 3)))
+    before = path.read_bytes()
+    with guard_inputs():
+        points = read_points(path)
+        with pytest.raises(OutputFileError, match="is one of the inputs"):
+            write_points(path, points * 2, overwrite=True)
+    assert path.read_bytes() == before
+    write_points(path, points * 2, overwrite=True)  # a library caller outside the CLI may
+    assert path.read_bytes() != before
+
+
+# ------------------------------------------------------------------ checks before any work
+
+
+def _forbid(monkeypatch, module: str, name: str) -> None:
+    def called(*args, **kwargs):
+        raise AssertionError(f"{module}.{name} ran before the output was checked")
+
+    monkeypatch.setattr(f"{module}.{name}", called)
+
+
+@pytest.mark.parametrize(
+    ("argv", "module", "name"),
+    [
+        (["anchors", "{scan}", "-o", "{tmp}/missing/a.ply"], "escape_cli.core.anchors", "select_anchors"),
+        (["encode", "{scan}", "-o", "{tmp}/missing/d.npy"], "escape_cli.core.anchors", "select_anchors"),
+        (["encode", "{scan}", "-o", "{tmp}/e.npy", "--anchors-out", "{tmp}/missing/a.ply"], "escape_cli.core.anchors", "select_anchors"),
+        (["decode", "{tmp}/d.npy", "-a", "{tmp}/d.anchors.ply", "-o", "{tmp}/missing/o.ply"], "escape_cli.core.reconstruction", "reconstruct"),
+        (["render", "{scan}", "-o", "{tmp}/missing/r.png"], "escape_cli.io", "read_point_fields"),
+        (["eval", "--root", "{tmp}/data", "--json-out", "{tmp}/missing/r.json"], "escape_cli.inference", "load_model"),
+        (["eval", "--root", "{tmp}/data", "--save", "{file}/out"], "escape_cli.inference", "load_model"),
+        (["export-onnx", "{file}", "-o", "{tmp}/f/m.onnx"], "escape_cli.nn.export", "export_onnx"),
+        (["export-onnx", "{scan}", "-o", "{file}/m.onnx"], "escape_cli.nn.export", "export_onnx"),
+    ],
+)
+def test_unwritable_output_is_reported_before_the_work(scan, tmp_path, monkeypatch, argv, module, name):
+    if module.startswith("escape_cli.nn"):
+        pytest.importorskip("torch")
+    (tmp_path / "f").write_text("a file, not a folder")
+    assert run_escape("encode", scan, "-o", tmp_path / "d.npy").exit_code == 0
+    _forbid(monkeypatch, module, name)
+    filled = [a.format(scan=scan, tmp=tmp_path, file=tmp_path / "f") for a in argv]
+    result = run_escape(*filled)
+    assert result.exit_code == 1
+    _one_line(result, "cannot write")
+
+
+def test_permission_denied_on_the_output_folder(scan, tmp_path, monkeypatch):
+    """As root chmod cannot make a folder unwritable: the check asks os.access, so ask it to say no."""
+    import escape_cli.io.files as files
+
+    monkeypatch.setattr(files.os, "access", lambda path, mode: False)
+    _forbid(monkeypatch, "escape_cli.core.anchors", "select_anchors")
+    result = run_escape("anchors", scan, "-o", tmp_path / "a.ply")
+    _one_line(result, f"cannot write {tmp_path / 'a.ply'}: permission denied (directory {tmp_path})")
+
+
+def test_absurd_points_are_refused_before_reading(tmp_path, tiny_model):
+    result = run_escape("complete", tmp_path / "not-even-there.ply", "-o", tmp_path / "o.ply", "--points", "100000000",
+                        "--model", tiny_model)
+    assert result.exit_code == 2
+    _one_line(result, "--points 100000000 is more than tiny.onnx can produce: at most 1280 (1024 predicted and up to 256 observed points)")
+
+
+def test_default_points_fit_a_small_model(scan, tmp_path, tiny_model):
+    result = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", tiny_model)
+    assert result.exit_code == 0, result.stderr
+    assert len(read_points(tmp_path / "o.ply")) <= 1280
+
+
+@pytest.mark.parametrize("what", ["folder", "not onnx", "not json"])
+def test_bad_model_path_is_reported_before_reading(tmp_path, what):
+    if what == "folder":
+        model = tmp_path
+    elif what == "not onnx":
+        model = tmp_path / "m.ply"
+        model.write_text("ply\n")
+    else:
+        model = tmp_path / "m.onnx"
+        model.write_bytes(b"\x08\x07")
+        (tmp_path / "m.json").write_bytes(b"\x00\xff garbage")
+    result = run_escape("complete", tmp_path / "not-there.ply", "-o", tmp_path / "o.ply", "--model", model)
+    expected = {"folder": "is a folder; give the model's .onnx file", "not onnx": "is not an ONNX model",
+                "not json": "m.json is corrupt (not JSON"}[what]  # fmt: skip
+    _one_line(result, expected)
+
+
+# ------------------------------------------------------------------ the machine fails, not escape
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
+@pytest.mark.parametrize("extra", [["-o", "-"], ["--json"]])
+def test_full_disk_under_stdout_is_one_line(scan, extra):
+    with open("/dev/full", "wb") as full:
+        done = subprocess.run([str(ESCAPE), "anchors", str(scan), *extra], stdout=full, stderr=subprocess.PIPE, text=True, timeout=120)
+    assert done.returncode == 1
+    _one_line(done.stderr, "escape: error: cannot write to stdout: No space left on device")
+
+
+def test_memory_error_is_one_line(scan, monkeypatch):
+    def no_memory(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr("escape_cli.core.anchors.select_anchors", no_memory)
+    result = run_escape("anchors", scan, "--json")
+    assert result.exit_code == 1
+    _one_line(result, "escape: error: out of memory")
+
+
+def test_python_warnings_are_debug_lines(scan, monkeypatch):
+    import escape_cli.core.anchors as anchors_module
+
+    original = anchors_module.select_anchors
+
+    def noisy(*args, **kwargs):
+        warnings.warn("overflow encountered in multiply", RuntimeWarning)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(anchors_module, "select_anchors", noisy)
+    quiet = run_escape("anchors", scan, "--json")
+    assert quiet.exit_code == 0 and "overflow" not in quiet.stderr, quiet.stderr
+    loud = run_escape("-vv", "anchors", scan, "--json")
+    assert loud.exit_code == 0
+    assert any(line.startswith("escape: DEBUG: RuntimeWarning: overflow encountered") for line in loud.stderr_lines), loud.stderr
+
+
+def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch):
+    calls = []
+    fake = types.SimpleNamespace(
+        set_default_logger_severity=lambda level: calls.append(("severity", level)),
+        SessionOptions=lambda: types.SimpleNamespace(),
+        InferenceSession=lambda *args, **kwargs: calls.append(("session", args[0])) or "session",
+    )
+    monkeypatch.setitem(sys.modules, "onnxruntime", fake)
+    from escape_cli.inference import _session
+
+    assert _session.__wrapped__("model.onnx", 0) == "session"
+    assert calls == [("severity", 3), ("session", "model.onnx")]
+
+
+# ------------------------------------------------------------------ closed pipes
+
+
+def _popen(argv, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen([str(ESCAPE), *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kwargs)
+
+
+@pytest.mark.parametrize("argv", [["anchors", "{scan}", "-o", "-"], ["anchors", "{scan}", "--json"], ["--help"], ["complete", "--help"]])
+def test_stdout_closed_before_writing_exits_141_quietly(scan, argv):
+    """`escape ... | true`: the reader is gone before a byte is written."""
+    process = _popen([a.format(scan=scan) for a in argv])
+    process.stdout.close()
+    err = process.stderr.read()
+    assert process.wait(timeout=120) == 141, err
+    assert err == b""
+
+
+def test_stdout_closed_after_ten_bytes_exits_141_quietly(tmp_path, rng):
+    """`escape encode big.ply -o - | head -c 10`: more data than a pipe holds, the reader leaves early."""
+    write_points(tmp_path / "big.ply", rng.normal(size=(30000, 3)))  # 30000 x 8 float64: 1.9 MB of distances
+    process = _popen(["-q", "encode", tmp_path / "big.ply", "-o", "-", "--anchors-out", tmp_path / "a.ply", "--method", "fps"])
+    assert len(process.stdout.read(10)) == 10
+    process.stdout.close()
+    err = process.stderr.read()
+    assert process.wait(timeout=300) == 141, err
+    assert err == b""
+
+
+# ------------------------------------------------------------------ Ctrl-C
+
+
+DRIVER = r"""
+import sys, time
+import escape_cli.inference as inference
+
+real_predict = inference.CompletionModel.predict
+
+def predict(self, x):
+    print("model running", file=sys.stderr, flush=True)
+    if sys.argv[1] == "sleep":
+        time.sleep(120)
+    for _ in range(100000):  # the interrupt arrives while onnxruntime runs
+        real_predict(self, x)
+
+inference.CompletionModel.predict = predict
+from escape_cli.cli.main import main
+sys.argv = ["escape", *sys.argv[2:]]
+main()
+"""
+
+
+@pytest.mark.parametrize("how", ["sleep", "onnxruntime"])
+def test_ctrl_c_while_the_model_runs(scan, tmp_path, tiny_model, how):
+    out = tmp_path / "o.ply"
+    process = subprocess.Popen(
+        [sys.executable, "-c", DRIVER, how, "complete", str(scan), "-o", str(out), "--model", str(tiny_model)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background shell may have ignored it
+    )  # fmt: skip
+    try:
+        assert process.stderr.readline() == b"model running\n"
+        process.send_signal(signal.SIGINT)
+        _, err = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130
+    assert err.decode().splitlines() == ["escape: interrupted"]
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == sorted(["scan.ply"])
+
+
+def test_stdout_write_failures_name_stdout(monkeypatch):
+    """An OSError other than a closed pipe on stdout is an OutputFileError naming stdout."""
+    import errno
+
+    from escape_cli.errors import OutputFileError
+    from escape_cli.io.files import write_output_bytes
+
+    class Full:
+        def flush(self):
+            pass
+
+        def fileno(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        @property
+        def buffer(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(sys, "stdout", Full())
+    with pytest.raises(OutputFileError, match="cannot write to stdout"):
+        write_output_bytes("-", b"data")
