@@ -37,6 +37,7 @@ CALLS = {
     checks.check_not_collinear: ((CLOUD,), [0]),
     sampling.farthest_from_centroid: ((CLOUD,), [0]),
     sampling.farthest_point_sampling: ((CLOUD, 16), [0]),
+    sampling.farthest_point_sampling_naive: ((CLOUD, 16), [0]),
     sampling.count_distinct: ((CLOUD,), [0]),
     sampling.prepare_input: ((CLOUD, 64), [0]),
     curvature.tie_stable_neighbours: ((CLOUD, 8), [0]),
