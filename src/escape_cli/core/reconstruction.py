@@ -127,6 +127,7 @@ _LAMBDA_DOWN, _LAMBDA_UP = 0.1, 4.0
 _XTOL = 1e-13  # x anchor RMS radius: a point whose proposed step is shorter is done
 _SIDE_RTOL = 1e-6  # a side-rule statistic smaller than this (relative) is 'no opinion'
 _LM_BATCH = 4096  # points per batch of the fast LM (measured best of 1024-32768 on 16384 and 32768 points)
+_LM_TAIL = 16  # a batch stops when fewer than 1/_LM_TAIL of its points are left; those finish together
 
 
 @dataclass(frozen=True, eq=False)
@@ -540,23 +541,6 @@ def _weighted_outer(c: np.ndarray, q: np.ndarray, moments: np.ndarray) -> tuple:
 def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, newton: bool = True):
     """Levenberg-Marquardt on all points at once; returns q (P, 3), cost (P,), iterations.
 
-    Points are independent, so they are solved in batches of `_LM_BATCH` (`_lm_batch`):
-    a batch's arrays stay in the processor's cache, which measured 2-3x faster than one
-    batch of 16384-32768 points. `iterations` is the most any batch ran.
-    """
-    q = np.empty_like(q0)
-    cost = np.empty(len(q0))
-    iterations = 0
-    for lo in range(0, len(q0), _LM_BATCH):
-        hi = lo + _LM_BATCH
-        q[lo:hi], cost[lo:hi], its = _lm_batch(q0[lo:hi], d[lo:hi], frame, max_iter, newton)
-        iterations = max(iterations, its)
-    return q, cost, iterations
-
-
-def _lm_batch(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, newton: bool = True):
-    """The Levenberg-Marquardt iteration of `_lm_batched` on one batch of points.
-
     Per point and iteration: the step solves (H + lambda I) dq = -g with H the exact
     Hessian of 0.5 sum_j r_j^2,
 
@@ -568,76 +552,110 @@ def _lm_batch(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, newto
     step is cut to the anchors' RMS radius and kept only if the point's cost drops;
     lambda shrinks 10x after a kept step and grows 4x after a rejected one.
 
-    The iteration of `_lm_batched_naive`, arranged for speed: anchor-major (K, P)
-    arrays (a sum over anchors adds K contiguous rows); the residuals, costs and
+    The iteration of `_lm_batched_naive`, arranged for speed (`_LM`): anchor-major
+    (K, P) arrays (a sum over anchors adds K contiguous rows); the residuals, costs and
     gradients of a kept trial step reused at the next iteration instead of recomputed;
     the 3x3 systems as six (P,) entries; sum_j c_j u_j u_j^T expanded about the common
-    anchors into one (9, K) x (K, P) product with the anchors' moments; and the points
-    still iterating gathered into a shorter batch as soon as some are done.
+    anchors into one (9, K) x (K, P) product with the anchors' moments; points that are
+    done leave the batch at once. Points are independent, so they are solved in batches
+    of `_LM_BATCH` whose arrays stay in the processor's cache (measured 2-3x faster than
+    one batch of 16384-32768 points), each until few of its points are left; those few
+    of every batch then finish together, so the long tail of slow points costs one
+    short batch per iteration instead of one per batch.
     """
-    a = frame.centred  # (K, 3)
-    k = len(a)
-    moments = np.stack([a[:, 0], a[:, 1], a[:, 2], a[:, 0] * a[:, 0], a[:, 0] * a[:, 1], a[:, 0] * a[:, 2],
-                        a[:, 1] * a[:, 1], a[:, 1] * a[:, 2], a[:, 2] * a[:, 2]])  # (9, K)
-    max_step = _STEP_BOUND * frame.radius
-    tiny = 1e-300 + 1e-12 * frame.radius  # a point closer than this to an anchor: J row ~ 0
-    noise_scale = 16.0 * np.finfo(float).eps
-    out_q = q0.T.copy()  # (3, M)
-    out_cost = np.empty(len(q0))
-    rows = np.arange(len(q0))  # (P,) the points still iterating
-    q = out_q.copy()  # (3, P)
-    dist = np.ascontiguousarray(d.T)  # (K, P)
-    lam = np.full(len(q0), _LAMBDA0)
-    rho, r, inv, cost, grad = _state(q, dist, a, tiny)
-    iterations = 0
-    for _ in range(max_iter):
-        if len(rows) == 0:
-            break
-        iterations += 1
-        if newton:
-            w = dist * inv  # (K, P)
-            shift = (k + lam) - w.sum(axis=0)  # (P,): sum_j (1 - w_j) plus the damping, on the diagonal
-            h = _weighted_outer(w * inv * inv, q, moments)
-            step, solved = _cholesky_solve3_entries(h[0] + shift, h[1], h[2], h[3] + shift, h[4], h[5] + shift,
-                                                    -grad[0], -grad[1], -grad[2])
-        else:
-            step, solved = np.zeros_like(grad), np.zeros(len(rows), dtype=bool)  # (3, P), (P,)
-        if not solved.all():
-            rest = np.flatnonzero(~solved)
-            inv_r, lam_r = inv[:, rest], lam[rest]
-            h = _weighted_outer(inv_r * inv_r, q[:, rest], moments)  # J^T J
-            gn_step, gn_ok = _cholesky_solve3_entries(h[0] + lam_r, h[1], h[2], h[3] + lam_r, h[4], h[5] + lam_r,
-                                                      -grad[0, rest], -grad[1, rest], -grad[2, rest])
-            gn_step[:, ~gn_ok] = 0.0  # only with lambda ~ 0 on a degenerate point: no move
-            step[:, rest] = gn_step
-        norm = np.sqrt(np.einsum("ip,ip->p", step, step))  # (P,)
-        step *= np.minimum(1.0, max_step / np.maximum(norm, 1e-300))
-        trial = q + step  # (3, P)
-        t_rho, t_r, t_inv, t_cost, t_grad = _state(trial, dist, a, tiny)
-        # Keep a step that lowers the cost; where the change is within the cost's own
-        # rounding error (eps * sum_j |r_j| (rho_j + d_j)) keep it if it lowers the
-        # gradient instead, so points settle to ~1e-15 and not to sqrt(eps) ~ 1e-8.
-        noise = noise_scale * np.einsum("kp,kp->p", np.abs(r), rho + dist)  # (P,)
-        flat = t_cost <= cost + noise
-        lower_grad = np.einsum("ip,ip->p", t_grad, t_grad) < np.einsum("ip,ip->p", grad, grad)
-        ok = np.isfinite(t_cost) & ((t_cost < cost) | (flat & lower_grad))  # (P,)
-        if ok.all():
-            q, grad, rho, r, inv, cost = trial, t_grad, t_rho, t_r, t_inv, t_cost
-        else:
-            for mine, theirs in ((q, trial), (grad, t_grad), (rho, t_rho), (r, t_r), (inv, t_inv)):
-                np.copyto(mine, theirs, where=ok)
-            cost = np.where(ok, t_cost, cost)
-        lam = np.where(ok, np.maximum(lam * _LAMBDA_DOWN, _LAMBDA_MIN), np.minimum(lam * _LAMBDA_UP, _LAMBDA_MAX))
-        done = (norm <= _XTOL * frame.radius) | (lam >= _LAMBDA_MAX)  # (P,)
-        if done.any():
-            out_q[:, rows[done]] = q[:, done]
-            out_cost[rows[done]] = cost[done]
-            live = np.flatnonzero(~done)
-            rows, lam, cost = rows[live], lam[live], cost[live]
-            q, grad, dist, rho, r, inv = (x[:, live] for x in (q, grad, dist, rho, r, inv))
-    out_q[:, rows] = q
-    out_cost[rows] = cost
-    return out_q.T.copy(), out_cost, iterations
+    lm = _LM(frame, len(q0), max_iter, newton)
+    tails = []
+    for lo in range(0, len(q0), _LM_BATCH):
+        hi = min(lo + _LM_BATCH, len(q0))
+        batch = _Batch(np.arange(lo, hi), q0[lo:hi].T.copy(), np.ascontiguousarray(d[lo:hi].T),
+                       np.full(hi - lo, _LAMBDA0), np.full(hi - lo, max_iter))
+        tails.append(lm.run(batch, until=(hi - lo) // _LM_TAIL))
+    lm.run(_Batch(*(np.concatenate(parts, axis=-1) for parts in zip(*tails))), until=0)
+    return lm.q.T.copy(), lm.cost, int(lm.used.max(initial=0))
+
+
+@dataclass(eq=False)
+class _Batch:
+    """Points still iterating: rows (P,) of the output, q (3, P), d (K, P), lambda (P,), iterations left (P,)."""
+
+    rows: np.ndarray
+    q: np.ndarray
+    d: np.ndarray
+    lam: np.ndarray
+    left: np.ndarray
+
+    def __iter__(self):
+        return iter((self.rows, self.q, self.d, self.lam, self.left))
+
+
+class _LM:
+    """The batched Levenberg-Marquardt iteration and the outputs it writes (see `_lm_batched`)."""
+
+    def __init__(self, frame: _Frame, m: int, max_iter: int, newton: bool):
+        a = frame.centred  # (K, 3)
+        self.a = a
+        self.moments = np.stack([a[:, 0], a[:, 1], a[:, 2], a[:, 0] * a[:, 0], a[:, 0] * a[:, 1],
+                                 a[:, 0] * a[:, 2], a[:, 1] * a[:, 1], a[:, 1] * a[:, 2], a[:, 2] * a[:, 2]])  # (9, K)
+        self.max_step = _STEP_BOUND * frame.radius
+        self.xtol = _XTOL * frame.radius
+        self.tiny = 1e-300 + 1e-12 * frame.radius  # a point closer than this to an anchor: J row ~ 0
+        self.max_iter = max_iter
+        self.newton = newton
+        self.q = np.zeros((3, m))  # outputs, written as points finish
+        self.cost = np.zeros(m)
+        self.used = np.zeros(m, dtype=np.int64)  # iterations each point ran
+
+    def run(self, batch: _Batch, until: int) -> tuple:
+        """Iterate until at most `until` points are left; returns them as (rows, q, d, lam, left)."""
+        rows, q, dist, lam, left = batch
+        a, k, tiny = self.a, len(self.a), self.tiny
+        noise_scale = 16.0 * np.finfo(float).eps
+        rho, r, inv, cost, grad = _state(q, dist, a, tiny)
+        while len(rows) > until:
+            if self.newton:
+                w = dist * inv  # (K, P)
+                shift = (k + lam) - w.sum(axis=0)  # (P,): sum_j (1 - w_j) plus the damping, on the diagonal
+                h = _weighted_outer(w * inv * inv, q, self.moments)
+                step, solved = _cholesky_solve3_entries(h[0] + shift, h[1], h[2], h[3] + shift, h[4], h[5] + shift,
+                                                        -grad[0], -grad[1], -grad[2])
+            else:
+                step, solved = np.zeros_like(grad), np.zeros(len(rows), dtype=bool)  # (3, P), (P,)
+            if not solved.all():
+                rest = np.flatnonzero(~solved)
+                inv_r, lam_r = inv[:, rest], lam[rest]
+                h = _weighted_outer(inv_r * inv_r, q[:, rest], self.moments)  # J^T J
+                gn_step, gn_ok = _cholesky_solve3_entries(h[0] + lam_r, h[1], h[2], h[3] + lam_r, h[4], h[5] + lam_r,
+                                                          -grad[0, rest], -grad[1, rest], -grad[2, rest])
+                gn_step[:, ~gn_ok] = 0.0  # only with lambda ~ 0 on a degenerate point: no move
+                step[:, rest] = gn_step
+            norm = np.sqrt(np.einsum("ip,ip->p", step, step))  # (P,)
+            step *= np.minimum(1.0, self.max_step / np.maximum(norm, 1e-300))
+            trial = q + step  # (3, P)
+            t_rho, t_r, t_inv, t_cost, t_grad = _state(trial, dist, a, tiny)
+            # Keep a step that lowers the cost; where the change is within the cost's own
+            # rounding error (eps * sum_j |r_j| (rho_j + d_j)) keep it if it lowers the
+            # gradient instead, so points settle to ~1e-15 and not to sqrt(eps) ~ 1e-8.
+            noise = noise_scale * np.einsum("kp,kp->p", np.abs(r), rho + dist)  # (P,)
+            flat = t_cost <= cost + noise
+            lower_grad = np.einsum("ip,ip->p", t_grad, t_grad) < np.einsum("ip,ip->p", grad, grad)
+            ok = np.isfinite(t_cost) & ((t_cost < cost) | (flat & lower_grad))  # (P,)
+            if ok.all():
+                q, grad, rho, r, inv, cost = trial, t_grad, t_rho, t_r, t_inv, t_cost
+            else:
+                for mine, theirs in ((q, trial), (grad, t_grad), (rho, t_rho), (r, t_r), (inv, t_inv)):
+                    np.copyto(mine, theirs, where=ok)
+                cost = np.where(ok, t_cost, cost)
+            lam = np.where(ok, np.maximum(lam * _LAMBDA_DOWN, _LAMBDA_MIN), np.minimum(lam * _LAMBDA_UP, _LAMBDA_MAX))
+            left = left - 1
+            done = (norm <= self.xtol) | (lam >= _LAMBDA_MAX) | (left == 0)  # (P,)
+            if done.any():
+                gone = rows[done]
+                self.q[:, gone], self.cost[gone] = q[:, done], cost[done]
+                self.used[gone] = self.max_iter - left[done]
+                live = np.flatnonzero(~done)
+                rows, lam, cost, left = rows[live], lam[live], cost[live], left[live]
+                q, grad, dist, rho, r, inv = (x[:, live] for x in (q, grad, dist, rho, r, inv))
+        return rows, q, dist, lam, left
 
 
 # --------------------------------------------------------------------- scipy LM
