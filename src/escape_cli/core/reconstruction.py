@@ -570,7 +570,8 @@ def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, new
         batch = _Batch(np.arange(lo, hi), q0[lo:hi].T.copy(), np.ascontiguousarray(d[lo:hi].T),
                        np.full(hi - lo, _LAMBDA0), np.full(hi - lo, max_iter))
         tails.append(lm.run(batch, until=(hi - lo) // _LM_TAIL))
-    lm.run(_Batch(*(np.concatenate(parts, axis=-1) for parts in zip(*tails))), until=0)
+    if tails:
+        lm.run(_Batch(*(np.concatenate(parts, axis=-1) for parts in zip(*tails))), until=0)
     return lm.q.T.copy(), lm.cost, int(lm.used.max(initial=0))
 
 
