@@ -75,3 +75,16 @@ def test_fast_fps_is_equivariant(name):
         perm = rng.permutation(len(cloud))
         moved = (s * cloud @ r.T + t)[perm]
         assert np.array_equal(perm[farthest_point_sampling(moved, count)], base)
+
+
+def test_first_unique_rows_equals_numpy_unique():
+    from escape_cli.core.sampling import count_distinct, first_unique_rows
+
+    rng = np.random.default_rng(4)
+    base = rng.normal(size=(300, 8)).round(2)
+    rows = np.concatenate([base, base[:120], -0.0 * base[:5], base[rng.integers(0, 300, 200)]])
+    rows[rows == 0.0] = -0.0  # signed zeros count as equal, as in numpy
+    rows = rows[rng.permutation(len(rows))]
+    assert np.array_equal(first_unique_rows(rows, 8), np.sort(np.unique(rows, axis=0, return_index=True)[1]))
+    cloud = rows[:, :3]
+    assert count_distinct(cloud) == len(np.unique(np.round(cloud, 12), axis=0))

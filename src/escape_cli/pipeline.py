@@ -14,7 +14,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points
 from escape_cli.core.params import as_choice, as_count
-from escape_cli.core.sampling import count_distinct, resample_rows
+from escape_cli.core.sampling import count_distinct, first_unique_rows, resample_rows
 from escape_cli.errors import ParameterError, PointCloudError
 
 log = logging.getLogger("escape")
@@ -118,7 +118,7 @@ def complete(
     features = distance_matrix(net_in.rows, anchors.points)  # (N', K)
     predicted = net.predict(features[None])[0].astype(np.float64)  # (M', K)
     if net_in.unique < len(net_in.rows):  # repeated input rows seed identical queries: drop their copies
-        predicted = predicted[np.sort(np.unique(predicted, axis=0, return_index=True)[1])]
+        predicted = predicted[first_unique_rows(predicted, net.k)]
     rec = reconstruct(predicted, anchors.points, method=solver, reference_points=observed_points)
 
     snap = snap_to_scan(rec.points, observed_points, snap_radius)
