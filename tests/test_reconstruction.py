@@ -390,3 +390,13 @@ def test_batched_equals_its_reference_on_noisy_input(rng, case):
     assert fast.near_planar == slow.near_planar
     wrong = lambda rec: int((np.linalg.norm(rec.points - points, axis=1) > 0.1).sum())  # noqa: E731
     assert wrong(fast) <= wrong(slow), "no more mirrored points than the reference"
+
+
+def test_batched_result_does_not_depend_on_workers(rng):
+    points = box_surface(10000, rng)
+    dist = encode(points, SPREAD_ANCHORS) + rng.normal(scale=0.01, size=(len(points), 8))
+    one = reconstruct(dist, SPREAD_ANCHORS, workers=1)
+    two = reconstruct(dist, SPREAD_ANCHORS, workers=3)
+    np.testing.assert_array_equal(one.points, two.points)
+    np.testing.assert_array_equal(one.residuals, two.residuals)
+    assert one.iterations == two.iterations

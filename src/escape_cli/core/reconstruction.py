@@ -47,6 +47,7 @@ Shapes: M output points, K anchors, N reference (partial) points.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from itertools import combinations
 
 import numpy as np
@@ -538,7 +539,7 @@ def _weighted_outer(c: np.ndarray, q: np.ndarray, moments: np.ndarray) -> tuple:
             total * y * z - y * mz - z * my + ms[7], total * z * z - 2.0 * z * mz + ms[8])
 
 
-def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, newton: bool = True):
+def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, newton: bool = True, workers: int = 1):
     """Levenberg-Marquardt on all points at once; returns q (P, 3), cost (P,), iterations.
 
     Per point and iteration: the step solves (H + lambda I) dq = -g with H the exact
@@ -561,15 +562,26 @@ def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, new
     of `_LM_BATCH` whose arrays stay in the processor's cache (measured 2-3x faster than
     one batch of 16384-32768 points), each until few of its points are left; those few
     of every batch then finish together, so the long tail of slow points costs one
-    short batch per iteration instead of one per batch.
+    short batch per iteration instead of one per batch. With `workers` > 1 the batches
+    run in that many threads (numpy releases the interpreter lock inside each array
+    operation); each point's arithmetic, and so the result, is the same.
     """
     lm = _LM(frame, len(q0), max_iter, newton)
-    tails = []
-    for lo in range(0, len(q0), _LM_BATCH):
+
+    def bulk(lo: int):
         hi = min(lo + _LM_BATCH, len(q0))
         batch = _Batch(np.arange(lo, hi), q0[lo:hi].T.copy(), np.ascontiguousarray(d[lo:hi].T),
                        np.full(hi - lo, _LAMBDA0), np.full(hi - lo, max_iter))
-        tails.append(lm.run(batch, until=(hi - lo) // _LM_TAIL))
+        return lm.run(batch, until=(hi - lo) // _LM_TAIL)
+
+    starts = range(0, len(q0), _LM_BATCH)
+    if workers > 1 and len(starts) > 1:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(min(workers, len(starts))) as pool:
+            tails = list(pool.map(bulk, starts))
+    else:
+        tails = [bulk(lo) for lo in starts]
     if tails:
         lm.run(_Batch(*(np.concatenate(parts, axis=-1) for parts in zip(*tails))), until=0)
     return lm.q.T.copy(), lm.cost, int(lm.used.max(initial=0))
@@ -717,6 +729,7 @@ def reconstruct(
     *,
     max_iter: int = 20,
     reference_points=None,
+    workers: int = 1,
 ) -> Reconstruction:
     """Recover points from their distances to the anchors.
 
@@ -739,6 +752,8 @@ def reconstruct(
     reference_points : (N, 3) float or None
         The partial cloud the anchors were taken from; only used to choose the side of
         a near-planar anchor set when distances cannot (see `plane_normal`).
+    workers : int
+        Threads for the batched solver (the same result with any number).
 
     Returns
     -------
@@ -757,7 +772,9 @@ def reconstruct(
     dist = _as_distances(distances, anc.shape[0])  # (M, K)
     reference = _as_reference(reference_points)
     frame = _frame(anc)
-    solve = {"batched": _lm_batched, "scipy": _lm_scipy, "batched-naive": _lm_batched_naive}[method]
+    workers = as_count(workers, "workers", minimum=1)
+    solve = {"batched": partial(_lm_batched, workers=workers), "scipy": _lm_scipy,
+             "batched-naive": _lm_batched_naive}[method]
     k = anc.shape[0]
     m = dist.shape[0]
 

@@ -48,7 +48,8 @@ class Snap:
     moved: np.ndarray
 
 
-def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SNAP_NEIGHBOURS, *, tree=None) -> Snap:
+def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SNAP_NEIGHBOURS, *, tree=None,
+                 workers: int = 1) -> Snap:
     """Pull predicted points near the scan onto the scan's local surface.
 
     Parameters
@@ -58,6 +59,7 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     radius : fade length of the pull; 0 turns snapping off.
     neighbours : scan points per fitted plane (at least 3).
     tree : a ``scipy.spatial.cKDTree`` of `scan` already built (reused), or None.
+    workers : threads of the neighbour query (the same result with any number).
 
     Returns
     -------
@@ -75,7 +77,8 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
         from scipy.spatial import cKDTree
 
         tree = cKDTree(ref)
-    dist, rows = tree.query(pts, k=min(neighbours, len(ref)))  # (M, k), nearest first
+    workers = as_count(workers, "workers", minimum=1)
+    dist, rows = tree.query(pts, k=min(neighbours, len(ref)), workers=workers)  # (M, k), nearest first
     gap = dist[:, 0]  # (M,)
     near = np.flatnonzero(gap < 2.0 * radius)
     if len(near) == 0:
