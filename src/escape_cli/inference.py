@@ -5,10 +5,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
+from concurrent.futures import Future
 from functools import lru_cache
 from pathlib import Path
-
-import numpy as np
 
 from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import EscapeError, ModelError
@@ -87,8 +87,10 @@ class CompletionModel:
         except EscapeError as err:
             raise ModelError(f"{self.path.with_suffix('.json')}: bad anchor settings: {err}") from None
 
-    def predict(self, partial_distances: np.ndarray) -> np.ndarray:
-        """partial_distances : (B, N, K) -> (B, M, K) float32."""
+    def predict(self, partial_distances):
+        """partial_distances : (B, N, K) -> (B, M, K) float32 array."""
+        import numpy as np
+
         x = np.ascontiguousarray(partial_distances, dtype=np.float32)
         if x.ndim != 3 or x.shape[1:] != (self.input_points, self.k):
             raise ModelError(f"model expects (B, {self.input_points}, {self.k}) distances, got {x.shape}")
@@ -143,7 +145,48 @@ def _session(path: str, threads: int):
         raise ModelError(f"cannot load model {path}: {str(err).splitlines()[0]}") from None
 
 
-@lru_cache(maxsize=4)
 def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
-    """Load (and cache) a model; None means the default model."""
-    return CompletionModel(Path(path) if path else default_model_path(), threads)
+    """Load (and cache) a model; None means the default model.
+
+    A load already under way (`preload_model`) is waited for, not repeated. Failed
+    loads are not cached.
+    """
+    return _loading(path, threads, background=False).result()
+
+
+def preload_model(path: str | None = None, threads: int = 0) -> Future:
+    """Start `load_model(path, threads)` in a background thread and return at once.
+
+    onnxruntime builds the session without holding the interpreter lock, so a command
+    that knows it will need the model can import numpy and scipy and read its input
+    meanwhile; `load_model` with the same arguments then waits for this load. Wait for
+    the returned future before the process exits.
+    """
+    return _loading(path, threads, background=True)
+
+
+_MODELS: dict = {}  # (path, threads) -> Future of a CompletionModel
+_MODELS_LOCK = threading.Lock()
+
+
+def _loading(path: str | None, threads: int, background: bool) -> Future:
+    key = (path, threads)
+    with _MODELS_LOCK:
+        future = _MODELS.get(key)
+        if future is not None:
+            return future
+        future = _MODELS[key] = Future()
+
+    def load() -> None:
+        try:
+            future.set_result(CompletionModel(Path(path) if path else default_model_path(), threads))
+        except BaseException as err:  # handed to whoever waits; not cached
+            with _MODELS_LOCK:
+                _MODELS.pop(key, None)
+            future.set_exception(err)
+
+    if background:
+        threading.Thread(target=load, name="escape-model-load", daemon=True).start()
+    else:
+        load()
+    return future
