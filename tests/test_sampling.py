@@ -88,3 +88,42 @@ def test_first_unique_rows_equals_numpy_unique():
     assert np.array_equal(first_unique_rows(rows, 8), np.sort(np.unique(rows, axis=0, return_index=True)[1]))
     cloud = rows[:, :3]
     assert count_distinct(cloud) == len(np.unique(np.round(cloud, 12), axis=0))
+
+
+# ------------------------------------------------------------------ huge clouds
+
+
+def test_thinning_is_equivariant_and_even(rng):
+    from escape_cli.core.sampling import thin_by_radius
+
+    cloud = partial_cloud(rng, 60000)
+    cloud = np.concatenate([cloud, cloud[:500], lattice(10, 0.01)])  # duplicates and exact ties too
+    base = thin_by_radius(cloud, 5000)
+    assert 2500 <= len(base) <= 5600 and np.all(np.diff(base) > 0)
+    for _ in range(4):
+        r, t, s = random_rotation(rng), rng.normal(scale=100.0, size=3), float(rng.uniform(1e-3, 1e3))
+        perm = rng.permutation(len(cloud))
+        got = thin_by_radius((s * cloud @ r.T + t)[perm], 5000)
+        assert np.array_equal(np.sort(perm[got]), base)
+    # even: the kept points cover the cloud about as a random 1-in-s subset does
+    from scipy.spatial import cKDTree
+
+    gaps = cKDTree(cloud[base]).query(cloud)[0]
+    random_gaps = cKDTree(cloud[rng.choice(len(cloud), len(base), replace=False)]).query(cloud)[0]
+    assert gaps.max() < 2.0 * random_gaps.max()
+    assert np.array_equal(thin_by_radius(cloud[:3000], 5000), np.arange(3000))
+
+
+def test_prepare_input_thins_huge_clouds_equivariantly(rng, monkeypatch):
+    import escape_cli.core.sampling as sampling
+
+    monkeypatch.setattr(sampling, "THIN_ABOVE", 20000)
+    monkeypatch.setattr(sampling, "THIN_TO", 8000)
+    cloud = partial_cloud(rng, 50000)
+    prepared, unique = sampling.prepare_input(cloud, 2048)
+    assert unique == 2048
+    kept = sampling.thin_by_radius(cloud, 8000)
+    assert np.array_equal(prepared, cloud[kept][farthest_point_sampling(cloud[kept], 2048)])
+    r, t = random_rotation(rng), rng.normal(size=3)
+    moved, _ = sampling.prepare_input((cloud @ r.T + t)[rng.permutation(len(cloud))], 2048)
+    np.testing.assert_allclose(moved, prepared @ r.T + t, atol=1e-9)

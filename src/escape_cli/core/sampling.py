@@ -342,13 +342,66 @@ def _row_keys(values: np.ndarray) -> np.ndarray:
     return rows.view(np.dtype((np.void, rows.itemsize * rows.shape[1]))).reshape(len(rows))
 
 
+THIN_ABOVE = 131072
+"""`prepare_input` first thins clouds of more points than this to about `THIN_TO`
+(`thin_by_radius`); up to it the network input is the FPS of every point."""
+
+THIN_TO = 65536
+
+
+def thin_by_radius(points, target: int) -> np.ndarray:
+    """About `target` rows of a cloud, chosen equivariantly in time ~N log N and memory ~N.
+
+    The points are ordered by their distance to the centroid (a rotation-, translation-,
+    permutation- and scale-invariant key) and every s-th is kept, s = ceil(N / target).
+    Keys within TIE_RTOL of the largest key of each other form one group (rotating the
+    cloud moves keys by rounding only, so it may reorder a group but never split one); a
+    group is kept whole when any of its positions in the order is a multiple of s, so
+    which rows are kept does not depend on the pose or on the order of the rows.
+    Consecutive points in this order lie anywhere on the shell of their radius, so the
+    kept rows thin the cloud evenly, like a random subset of 1 in s.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    target : rows wanted (at least 1); clouds of at most `target` points are kept whole, others
+        thinned to N / ceil(N / target) rows (between target / 2 and target) plus whole groups.
+
+    Returns
+    -------
+    rows : (R,) int64, ascending.
+    """
+    pts = as_points(points)
+    target = as_count(target, "target", minimum=1)
+    n = len(pts)
+    if n <= target:
+        return np.arange(n)
+    centre = pts.mean(axis=0)
+    key2 = np.zeros(n)
+    for c in range(3):  # (N,) squared distance to the centroid, without an (N, 3) temporary
+        d = pts[:, c] - centre[c]
+        key2 += d * d
+    order = np.argsort(key2, kind="stable")  # (N,)
+    key = np.sqrt(key2[order])  # (N,) ascending
+    del key2
+    group = np.zeros(n, dtype=np.int64)  # group number of each position
+    np.cumsum(np.diff(key) > TIE_RTOL * key[-1], out=group[1:])
+    stride = -(-n // target)
+    kept_groups = np.zeros(int(group[-1]) + 1, dtype=bool)
+    kept_groups[group[::stride]] = True
+    return np.sort(order[kept_groups[group]])
+
+
 def prepare_input(points, size: int = 2048) -> tuple[np.ndarray, int]:
     """Make the fixed-size, farthest-point-ordered network input from a cloud of any size.
 
     Larger clouds are subsampled by farthest point sampling; smaller ones are put in
     farthest-point order and repeated cyclically (PCN repeats points too). Either way
     the first `q` rows are the `q`-point FPS subset for every `q`, which the network
-    uses as its centres, and the result is equivariant.
+    uses as its centres, and the result is equivariant. Clouds of more than THIN_ABOVE
+    points are first thinned to about THIN_TO by `thin_by_radius` (also equivariant), so
+    that a scan of millions of points takes seconds: the FPS of the thinned cloud
+    covers the scan as the FPS of every point does (measured in docs/ARCHITECTURE.md).
 
     Parameters
     ----------
@@ -361,6 +414,8 @@ def prepare_input(points, size: int = 2048) -> tuple[np.ndarray, int]:
     unique_count : number of leading rows that are distinct points (min(N, size)).
     """
     pts = as_points(points)
+    if len(pts) > THIN_ABOVE:
+        pts = pts[thin_by_radius(pts, THIN_TO)]
     if len(np.unique(_row_keys(pts))) < len(pts):  # duplicates carry no information and break FPS
         pts = np.unique(pts, axis=0)
     count = min(len(pts), size)
