@@ -28,7 +28,8 @@ LAYERS = {
     "escape_cli.__main__": 7,
 }
 FACADE = "escape_cli"  # the package's __init__: re-exports `complete` (lazily)
-CORE_ALLOWED = {"numpy", "scipy", "__future__", "dataclasses", "math", "numbers", "itertools", "typing", "functools"}
+CORE_ALLOWED = {"numpy", "scipy", "__future__", "dataclasses", "math", "numbers", "itertools", "typing", "functools",
+                "concurrent"}  # concurrent.futures: threads for independent batches (reconstruction)
 
 
 def module_name(path: Path) -> str:

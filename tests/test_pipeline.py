@@ -76,3 +76,55 @@ def test_snap_radius_controls_snapping(tiny_model, rng):
     assert gap(wide.points).mean() <= gap(off.points).mean() + 1e-9
     with pytest.raises(ValueError, match="snap_radius"):
         complete(cloud, tiny_model, snap_radius=-1.0)
+
+
+# ------------------------------------------------------------------ complete_many
+
+
+def _same_completion(a, b):
+    """The same completion up to float32 rounding: onnxruntime may round a batch's rows differently."""
+    size = np.ptp(b.points, axis=0).max()
+    np.testing.assert_allclose(a.points, b.points, rtol=0, atol=1e-7 * size)
+    np.testing.assert_allclose(a.residuals, b.residuals, rtol=1e-5, atol=1e-9 * size)
+    np.testing.assert_array_equal(a.is_observed, b.is_observed)
+    np.testing.assert_array_equal(a.is_snapped, b.is_snapped)
+    np.testing.assert_array_equal(a.anchor_indices, b.anchor_indices)
+    assert a.summary().keys() == b.summary().keys()
+    for key, value in b.summary().items():
+        assert a.summary()[key] == pytest.approx(value, rel=1e-5, abs=1e-9), key
+
+
+def test_complete_many_equals_complete_of_each(tiny_model, rng):
+    from escape_cli import complete_many
+
+    clouds = [partial_cloud(rng, n) for n in (120, 400, 256, 900, 60)]
+    clouds[2] = clouds[2] * 30.0 + 5.0  # other units
+    many = complete_many((c for c in clouds), tiny_model, batch_size=2, output_points=700)
+    assert len(many) == len(clouds)
+    for cloud, got in zip(clouds, many):
+        _same_completion(got, complete(cloud, tiny_model, output_points=700))
+
+
+def test_complete_many_isolates_bad_clouds(tiny_model, rng):
+    from escape_cli import complete_many
+
+    good = partial_cloud(rng, 300)
+    clouds = [good, np.zeros((10, 3)), good[:, :2], good * 2.0]
+    with pytest.raises(PointCloudError):
+        complete_many(clouds, tiny_model, output_points=500)
+    many = complete_many(clouds, tiny_model, batch_size=3, return_exceptions=True, output_points=500)
+    assert isinstance(many[1], PointCloudError) and "distinct" in str(many[1])
+    assert isinstance(many[2], PointCloudError)
+    _same_completion(many[0], complete(good, tiny_model, output_points=500))
+    _same_completion(many[3], complete(good * 2.0, tiny_model, output_points=500))
+    assert complete_many([], tiny_model) == []
+
+
+def test_complete_many_checks_its_options_first(tiny_model, rng):
+    from escape_cli import complete_many
+    from escape_cli.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="batch_size"):
+        complete_many([partial_cloud(rng, 100)], tiny_model, batch_size=0, return_exceptions=True)
+    with pytest.raises(ParameterError, match="normalize"):
+        complete_many([partial_cloud(rng, 100)], tiny_model, normalize="bogus", return_exceptions=True)

@@ -369,3 +369,34 @@ def test_batched_3x3_cholesky_matches_numpy(rng):
     indefinite = spd.copy()
     indefinite[:, 2, 2] = -1.0
     assert not _cholesky_solve3(indefinite, b)[1].any()
+
+
+# --------------------------------------------------- fast batched vs its reference
+
+
+@pytest.mark.parametrize("case", ["spread", "near-planar", "exactly planar", "garbage"])
+def test_batched_equals_its_reference_on_noisy_input(rng, case):
+    points = box_surface(9000, rng)  # more than one batch of the fast solver
+    anchors = {"spread": SPREAD_ANCHORS, "near-planar": flat_anchors(rng, 1e-3),
+               "exactly planar": flat_anchors(rng, 0.0), "garbage": SPREAD_ANCHORS}[case]
+    dist = encode(points, anchors) + rng.normal(scale=0.01, size=(len(points), len(anchors)))
+    if case == "garbage":
+        dist = rng.uniform(0.0, 2.0, size=dist.shape)
+    reference = front_partial(points) if case != "spread" else None
+    fast = reconstruct(dist, anchors, "batched", reference_points=reference)
+    slow = reconstruct(dist, anchors, "batched-naive", reference_points=reference)
+    np.testing.assert_allclose(fast.points, slow.points, atol=1e-6)
+    np.testing.assert_allclose(fast.residuals, slow.residuals, atol=1e-9)
+    assert fast.near_planar == slow.near_planar
+    wrong = lambda rec: int((np.linalg.norm(rec.points - points, axis=1) > 0.1).sum())  # noqa: E731
+    assert wrong(fast) <= wrong(slow), "no more mirrored points than the reference"
+
+
+def test_batched_result_does_not_depend_on_workers(rng):
+    points = box_surface(10000, rng)
+    dist = encode(points, SPREAD_ANCHORS) + rng.normal(scale=0.01, size=(len(points), 8))
+    one = reconstruct(dist, SPREAD_ANCHORS, workers=1)
+    two = reconstruct(dist, SPREAD_ANCHORS, workers=3)
+    np.testing.assert_array_equal(one.points, two.points)
+    np.testing.assert_array_equal(one.residuals, two.residuals)
+    assert one.iterations == two.iterations

@@ -92,3 +92,42 @@ def test_inputs_are_not_modified(rng):
     before = points.copy(), scan.copy()
     snap_to_scan(points, scan)
     assert np.array_equal(points, before[0]) and np.array_equal(scan, before[1])
+
+
+def test_closed_form_plane_fits_match_eigh(rng):
+    from escape_cli.core.snap import _plane_fits, _plane_fits_naive
+
+    patches = rng.normal(size=(3000, 8, 3)) * rng.uniform(1e-4, 1.0, size=(3000, 1, 3))  # flat to round
+    patches[:500, :, 2] = 0.0  # exactly flat
+    patches = patches @ np.stack([random_rotation(rng) for _ in range(3000)]).transpose(0, 2, 1)
+    offsets = patches - patches.mean(axis=1, keepdims=True)
+    cov = offsets.transpose(0, 2, 1) @ offsets
+    values, normal = _plane_fits(cov)
+    ref_values, ref_normal = _plane_fits_naive(cov)
+    scale = ref_values[:, 2:]
+    # in units of the largest eigenvalue; near a double eigenvalue acos loses half the digits
+    np.testing.assert_allclose(values / scale, ref_values / scale, atol=1e-8)
+    np.testing.assert_allclose(values[:, 0] / scale[:, 0], ref_values[:, 0] / scale[:, 0], atol=1e-11)
+    surface = ref_values[:, 0] <= 0.25 * ref_values[:, 1]  # where snapping uses the normal
+    assert surface.sum() > 1000
+    cosine = np.abs(np.einsum("pi,pi->p", normal, ref_normal))[surface]
+    np.testing.assert_allclose(cosine, 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-12)
+
+
+def test_snap_with_closed_form_fits_equals_snap_with_eigh(rng, monkeypatch):
+    import escape_cli.core.snap as snap_module
+
+    scan = plane_scan(rng, 1500)
+    scan[:, 2] = 0.5 * scan[:, 0] ** 2 - 0.3 * scan[:, 1] ** 2  # a saddle
+    points = scan[:400] + rng.normal(scale=0.03, size=(400, 3))
+    fast = snap_to_scan(points, scan)
+
+    def with_eigh(a00, a01, a02, a11, a12, a22):
+        cov = np.stack([np.stack([a00, a01, a02], -1), np.stack([a01, a11, a12], -1), np.stack([a02, a12, a22], -1)], 1)
+        return snap_module._plane_fits_naive(cov)
+
+    monkeypatch.setattr(snap_module, "_plane_fits_entries", with_eigh)
+    slow = snap_to_scan(points, scan)
+    assert fast.moved.sum() > 300 and (fast.moved == slow.moved).all()
+    np.testing.assert_allclose(fast.points, slow.points, atol=1e-12)

@@ -35,6 +35,24 @@ def command(
     overwrite: bool = OVERWRITE,
 ) -> None:
     """Complete partial point clouds; the output stays in each input's frame and units."""
+    from concurrent.futures import wait
+
+    from escape_cli.inference import preload_model
+
+    # One scan (the cold-start case): build the network's session while numpy and scipy
+    # are imported and the scan is read and prepared.
+    single = len(inputs) == 1 and (inputs[0] == "-" or Path(inputs[0]).is_file())
+    loading = preload_model(str(model) if model else None) if single else None
+    try:
+        _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
+                  workers, fmt, input_format, recursive, json_out, overwrite)
+    finally:
+        if loading is not None:
+            wait([loading])  # never leave the loader running at exit
+
+
+def _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
+              workers, fmt, input_format, recursive, json_out, overwrite) -> None:
     from escape_cli.cli.batch import CompletionJob, plan_jobs, run_jobs
     from escape_cli.errors import EscapeError
 

@@ -51,6 +51,8 @@ def select_anchors(
     method: str = DEFAULTS.method,
     radius: float = DEFAULTS.radius,
     knn: int = DEFAULTS.knn,
+    *,
+    tree=None,
 ) -> Anchors:
     """Choose `k` distinct anchor points on a cloud.
 
@@ -61,6 +63,7 @@ def select_anchors(
     method : "ball", "fps" or "cluster".
     radius : search radius of the "ball" refinement, in the cloud's units.
     knn : neighbourhood size of the curvature estimate.
+    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
 
     Returns
     -------
@@ -77,10 +80,14 @@ def select_anchors(
     if method == "fps":
         chosen = seeds
     else:
-        curvature = surface_variation(pts, knn)  # (N,)
+        if tree is None:
+            from scipy.spatial import cKDTree
+
+            tree = cKDTree(pts)
+        curvature = surface_variation(pts, knn, tree=tree)  # (N,)
         centroid_dist = np.linalg.norm(pts - pts.mean(axis=0), axis=1)  # (N,)
         if method == "ball":
-            chosen = _refine_in_balls(pts, seeds, curvature, centroid_dist, radius)
+            chosen = _refine_in_balls(pts, seeds, curvature, centroid_dist, radius, tree)
         else:
             chosen = _refine_in_clusters(pts, seeds, curvature, centroid_dist)
     return Anchors(indices=chosen.astype(np.int64), points=pts[chosen].copy())
@@ -105,10 +112,7 @@ def _is_free(pts, chosen: list[int]) -> np.ndarray:
     return free
 
 
-def _refine_in_balls(pts, seeds, curvature, centroid_dist, radius) -> np.ndarray:
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(pts)
+def _refine_in_balls(pts, seeds, curvature, centroid_dist, radius, tree) -> np.ndarray:
     chosen: list[int] = []
     for seed in seeds:
         free = _is_free(pts, chosen)

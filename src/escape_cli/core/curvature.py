@@ -12,26 +12,29 @@ from escape_cli.core.params import as_count
 NEIGHBOUR_TIE_RTOL = 1e-7
 
 
-def tie_stable_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def tie_stable_neighbours(points: np.ndarray, k: int, *, tree=None) -> tuple[np.ndarray, np.ndarray]:
     """kNN neighbourhoods that include every point tied with the k-th neighbour.
 
     Parameters
     ----------
     points : (N, 3) float64
     k : neighbours per point, the point itself included.
+    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
 
     Returns
     -------
     indices : (N, L) int64, L >= k, padded with the point itself.
     mask : (N, L) bool, True for real neighbours.
     """
-    from scipy.spatial import cKDTree
-
     points = as_points(points, "points", min_points=1)
     n = len(points)
     k = min(as_count(k, "k (neighbours)", minimum=1), n)
     extra = min(n, k + 8)
-    dist, idx = cKDTree(points).query(points, k=extra)  # (N, L)
+    if tree is None:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(points)
+    dist, idx = tree.query(points, k=extra)  # (N, L)
     dist = dist.reshape(n, extra)
     idx = idx.reshape(n, extra)
     kth = dist[:, k - 1 : k]  # (N, 1)
@@ -40,7 +43,7 @@ def tie_stable_neighbours(points: np.ndarray, k: int) -> tuple[np.ndarray, np.nd
     return idx, mask
 
 
-def surface_variation(points, k: int = 16) -> np.ndarray:
+def surface_variation(points, k: int = 16, *, tree=None) -> np.ndarray:
     """Curvature as surface variation, kappa_i = lambda_min / (lambda_1 + lambda_2 + lambda_3).
 
     The eigenvalues are those of the covariance of point i's k nearest neighbours. It
@@ -51,6 +54,7 @@ def surface_variation(points, k: int = 16) -> np.ndarray:
     ----------
     points : (N, 3) float64
     k : neighbourhood size (the point itself included).
+    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
 
     Returns
     -------
@@ -58,7 +62,7 @@ def surface_variation(points, k: int = 16) -> np.ndarray:
     """
     pts = as_points(points, "points", min_points=1)
     k = as_count(k, "k (neighbours)", minimum=1)
-    idx, mask = tie_stable_neighbours(pts, k)
+    idx, mask = tie_stable_neighbours(pts, k, tree=tree)
     weights = mask / mask.sum(axis=1, keepdims=True)  # (N, L)
     neigh = pts[idx]  # (N, L, 3)
     mean = np.einsum("nl,nlc->nc", weights, neigh)  # (N, 3)
