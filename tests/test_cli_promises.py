@@ -214,7 +214,7 @@ def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch):
     calls = []
     fake = types.SimpleNamespace(
         set_default_logger_severity=lambda level: calls.append(("severity", level)),
-        SessionOptions=lambda: types.SimpleNamespace(),
+        SessionOptions=lambda: types.SimpleNamespace(add_session_config_entry=lambda key, value: None),
         InferenceSession=lambda *args, **kwargs: calls.append(("session", args[0])) or "session",
     )
     monkeypatch.setitem(sys.modules, "onnxruntime", fake)
