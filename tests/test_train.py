@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 
+import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -100,3 +102,20 @@ def test_init_refuses_another_preset(tiny_tree, tmp_path):
     Trainer(options(tiny_tree, tmp_path / "a", max_steps=1)).run()
     with pytest.raises(EscapeError, match="network"):
         Trainer(options(tiny_tree, tmp_path / "b", config="small", init=str(tmp_path / "a" / "last.pt")))
+
+
+def test_training_on_two_datasets_joins_their_train_splits(tiny_tree, tmp_path):
+    other = tmp_path / "other"
+    write_tiny_pcn_tree(other, seed=9, objects=1, views=1)
+    one = Trainer(options(tiny_tree, tmp_path / "one"))
+    both = Trainer(replace(options(tiny_tree, tmp_path / "both"), extra_data=(str(other),)))
+    extra = Trainer(options(other, tmp_path / "extra"))
+    assert len(both.train_data) == len(one.train_data) + len(extra.train_data)
+    assert len(both.train_data.completes) == len(one.train_data.completes) + len(extra.train_data.completes)
+    i = len(one.train_data)  # the first sample of the second dataset keeps its own complete cloud
+    np.testing.assert_array_equal(both.train_data.complete_in_frame(i), extra.train_data.complete_in_frame(0))
+    assert len(both.val_data) == len(one.val_data)  # validation: the first dataset's val split
+    both.opt = replace(both.opt, max_steps=1)
+    both.run()
+    saved = torch.load(tmp_path / "both" / "last.pt", weights_only=False)
+    assert TrainOptions.from_dict(saved["options"]).extra_data == (str(other),)

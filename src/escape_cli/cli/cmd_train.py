@@ -11,7 +11,10 @@ from escape_cli.cli.options import number_check, print_summary
 
 
 def command(
-    data: Path = typer.Option(..., "--data", help="PCN-layout dataset root (from `escape dataset synth`, or PCN)."),
+    data: List[Path] = typer.Option(
+        ..., "--data",
+        help="PCN-layout dataset root (from `escape dataset synth`, or PCN); repeat to train on several (validation: the first's val split).",
+    ),
     out: Path = typer.Option(..., "--out", help="Run folder: checkpoints, curve.csv, cache."),
     config: str = typer.Option("small", "--config", help="Network preset: small, paper (or tiny for tests)."),
     epochs: int = typer.Option(10, "--epochs", min=1),
@@ -58,7 +61,7 @@ def command(
         raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
     _check_run_folder(out, data, init)
     options = TrainOptions(
-        data=str(data), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
+        data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
         device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
         categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
         max_steps=max_steps, xyz_weight=xyz_weight, snapshot_every=snapshot_every, init=str(init) if init else None,
@@ -95,7 +98,7 @@ def _check_device(device: str) -> None:
         raise typer.BadParameter(f"{device}: no CUDA device is available here", param_hint="--device")
 
 
-def _check_run_folder(out: Path, data: Path, init: Optional[Path]) -> None:
+def _check_run_folder(out: Path, data: List[Path], init: Optional[Path]) -> None:
     """The run folder is neither the dataset nor a file, can be written, and does not hold --init.
 
     A run writes OUT/last.pt, OUT/best.pt and OUT/snapshots/: starting from one of them
@@ -104,7 +107,7 @@ def _check_run_folder(out: Path, data: Path, init: Optional[Path]) -> None:
     from escape_cli.errors import OutputFileError
     from escape_cli.io.files import check_output_folder, same_file
 
-    if same_file(out, data):
+    if any(same_file(out, root) for root in data):
         raise OutputFileError(f"--out {out} is the dataset folder --data; give the run its own folder")
     check_output_folder(out)
     if init is None:

@@ -125,6 +125,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
         "training": {
             "data": options.get("data"),
             "dataset": _dataset_summary(options.get("data")),
+            "extra_data": [{"data": root, "dataset": _dataset_summary(root)} for root in options.get("extra_data") or ()],
             "views_per_object": options.get("views_per_object"),
             "seed": options.get("seed"),
             "train_samples": state.get("train_samples"),

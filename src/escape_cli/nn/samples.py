@@ -62,6 +62,25 @@ class PreparedSplit:
         return ((cloud - self.centers[sample]) / self.scales[sample]).astype(np.float32)
 
 
+def concatenate_splits(splits: list[PreparedSplit]) -> PreparedSplit:
+    """One split made of several (e.g. the train splits of two datasets), samples in order."""
+    if len(splits) == 1:
+        return splits[0]
+    offsets = np.cumsum([0] + [len(s.completes) for s in splits[:-1]])
+    return PreparedSplit(
+        inputs=np.concatenate([s.inputs for s in splits]),
+        anchors=np.concatenate([s.anchors for s in splits]),
+        object_index=np.concatenate([s.object_index + offset for s, offset in zip(splits, offsets)]),
+        completes=np.concatenate([s.completes for s in splits]),
+        synsets=np.concatenate([s.synsets for s in splits]),
+        model_ids=np.concatenate([s.model_ids for s in splits]),
+        views=np.concatenate([s.views for s in splits]),
+        unique_counts=np.concatenate([s.unique_counts for s in splits]),
+        centers=np.concatenate([s.centers for s in splits]),
+        scales=np.concatenate([s.scales for s in splits]),
+    )
+
+
 def _prepare_one(args) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, float]:
     from escape_cli.core.anchors import select_anchors
     from escape_cli.core.normalize import network_input

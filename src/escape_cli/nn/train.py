@@ -20,7 +20,7 @@ from escape_cli.nn.checkpoint import load_checkpoint_model, save_checkpoint
 from escape_cli.nn.config import ModelConfig, get_preset
 from escape_cli.nn.loss import chamfer_l1, reconstruct_differentiable
 from escape_cli.nn.model import EscapeNet, count_parameters
-from escape_cli.nn.samples import PreparedSplit, prepare_split
+from escape_cli.nn.samples import PreparedSplit, concatenate_splits, prepare_split
 
 log = logging.getLogger("escape")
 
@@ -29,7 +29,7 @@ log = logging.getLogger("escape")
 class TrainOptions:
     """Everything a training run depends on (saved in every checkpoint)."""
 
-    data: str
+    data: str  # the dataset; its val split is the run's validation
     out: str
     config: str = "small"
     epochs: int = 10
@@ -60,6 +60,7 @@ class TrainOptions:
     init: str | None = None  # start from this checkpoint's weights (fresh optimizer and schedule)
     anchors: AnchorSettings = field(default_factory=AnchorSettings)
     frame: PartialFrame | None = field(default_factory=PartialFrame)  # None: absolute dataset units
+    extra_data: tuple[str, ...] = ()  # more datasets whose train splits join `data`'s
 
     @classmethod
     def from_dict(cls, raw: dict) -> "TrainOptions":
@@ -68,6 +69,7 @@ class TrainOptions:
         values["anchors"] = AnchorSettings.from_dict(values.get("anchors"))
         # runs from before the partial frame trained in absolute units
         values["frame"] = PartialFrame(**values["frame"]) if values.get("frame") else None
+        values["extra_data"] = tuple(values.get("extra_data") or ())
         if values.get("categories"):
             values["categories"] = tuple(values["categories"])
         return cls(**values)
@@ -123,10 +125,13 @@ class Trainer:
         self.elapsed = 0.0
         self.best = math.inf
         self.lineage: list[dict] = []  # runs this one was initialised from, oldest first
-        self.train_data: PreparedSplit = prepare_split(
-            Path(options.data), "train", self.config.input_points, options.anchors, self.out / "cache", options.frame,
-            categories=options.categories, max_views=options.views_per_object, workers=options.workers,
-        )
+        self.train_data: PreparedSplit = concatenate_splits([
+            prepare_split(
+                Path(root), "train", self.config.input_points, options.anchors, self.out / "cache", options.frame,
+                categories=options.categories, max_views=options.views_per_object, workers=options.workers,
+            )
+            for root in (options.data, *options.extra_data)
+        ])
         self.val_data: PreparedSplit = validation_split(options, self.config.input_points)
         self.steps_per_epoch = max(1, len(self.train_data) // options.batch)
         self.input_radius = self._median_input_radius() if options.frame is None else None
