@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 # Development installs every extra (one per job: see pyproject.toml).
-EXTRAS ?= test,train,synth,h5
+EXTRAS ?= test,train,synth,h5,ray
 # torch is pinned to 2.13.0; on indexes where that is a CUDA build, take the CPU build:
 #   make install TORCH_INDEX="--index-url https://download.pytorch.org/whl/cpu"
 TORCH_INDEX ?=

@@ -8,8 +8,8 @@ needed=()
 for extra in "$@"; do
     case "$extra" in
         synth) needed+=(libgl1 libegl1 libx11-6 libusb-1.0-0 libudev1 libgomp1) ;;
-        train | test | h5) ;;  # pip wheels only
-        *) echo "escape: unknown extra '$extra' (synth, train, h5, test)" >&2; exit 2 ;;
+        train | test | h5 | ray) ;;  # pip wheels only
+        *) echo "escape: unknown extra '$extra' (synth, train, h5, ray, test)" >&2; exit 2 ;;
     esac
 done
 missing=()

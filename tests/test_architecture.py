@@ -145,3 +145,12 @@ def test_the_walker_sees_lazy_and_relative_imports(tmp_path):
     source.write_text("def f():\n    from escape_cli.cli import main\n    import escape_cli.nn.train\n")
     found = imports_of(source, "escape_cli.core.mod")
     assert "escape_cli.cli.main" in found and "escape_cli.nn.train" in found
+
+
+def test_only_the_ray_engine_imports_ray():
+    """Ray is an optional extra: one module imports it, and only when `--engine ray` asks."""
+    importers = sorted(
+        name for name, path in modules().items()
+        if any(imported == "ray" or imported.startswith("ray.") for imported in imports_of(path, name))
+    )
+    assert importers == ["escape_cli.engines.ray_engine"]

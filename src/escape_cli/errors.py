@@ -4,6 +4,8 @@ The CLI turns every `EscapeError` into one line on stderr and a non-zero exit co
 anything else is a bug and is reported as such.
 """
 
+from contextlib import contextmanager
+
 
 class EscapeError(Exception):
     """Base class: a problem the user can fix (bad file, bad option, bad geometry)."""
@@ -47,3 +49,19 @@ class OutputFileError(EscapeError):
 
 class MissingDependencyError(EscapeError):
     """An optional library (an extra of the package) that a command needs is not installed."""
+
+
+@contextmanager
+def errors_about(name: str):
+    """Prefix the escape errors raised inside the block with `name` (the file concerned).
+
+    A core function's "has 5 points; at least 8 needed" becomes
+    "scan.ply: has 5 points; at least 8 needed"; a message that already starts with
+    the name is left as it is.
+    """
+    try:
+        yield
+    except EscapeError as err:
+        if str(err).startswith(f"{name}:"):
+            raise
+        raise type(err)(f"{name}: {err}") from None

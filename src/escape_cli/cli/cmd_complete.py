@@ -14,7 +14,7 @@ DEFAULT_POINTS = 16384
 
 
 def command(
-    inputs: List[str] = typer.Argument(..., help="Partial clouds: files, folders, globs, or '-' for stdin."),
+    inputs: Optional[List[str]] = typer.Argument(None, help="Partial clouds: files, folders, globs, or '-' for stdin."),
     output: str = typer.Option(..., "--output", "-o", help="Output file (one input), folder (several), or '-'."),
     model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: $ESCAPE_MODEL, else the model shipped in the package)."),
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
@@ -27,7 +27,12 @@ def command(
     anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
     residuals: bool = typer.Option(False, "--residuals", help="Add per-point reconstruction residuals as a 'residual' field."),
     solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),
-    workers: int = typer.Option(1, "--workers", "-w", min=1, help="Files completed in parallel."),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, help="Files completed in parallel (processes, or Ray actors)."),
+    files_from: Optional[str] = typer.Option(None, "--files-from", help="Also complete the files listed in FILE, one path a line ('-': stdin)."),
+    shard: Optional[str] = typer.Option(None, "--shard", help="I/N: complete only shard I (0 to N-1) of the sorted inputs."),
+    skip_existing: bool = typer.Option(False, "--skip-existing", help="Skip inputs whose outputs exist and read back (resume a batch)."),
+    engine: str = typer.Option("local", "--engine", help="local (worker processes) or ray (Ray Data; needs escape-cli[ray])."),
+    ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster to join (e.g. auto); default: start Ray here."),
     fmt: Optional[str] = FORMAT,
     input_format: Optional[str] = INPUT_FORMAT,
     recursive: bool = typer.Option(False, "--recursive", "-r", help="Look for clouds in sub-folders too."),
@@ -41,37 +46,48 @@ def command(
 
     # One scan (the cold-start case): build the network's session while numpy and scipy
     # are imported and the scan is read and prepared.
-    single = len(inputs) == 1 and (inputs[0] == "-" or Path(inputs[0]).is_file())
+    inputs = inputs or []
+    single = len(inputs) == 1 and files_from is None and (inputs[0] == "-" or Path(inputs[0]).is_file())
     loading = preload_model(str(model) if model else None) if single else None
     try:
         _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
-                  workers, fmt, input_format, recursive, json_out, overwrite)
+                  workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
+                  json_out, overwrite)
     finally:
         if loading is not None:
             wait([loading])  # never leave the loader running at exit
 
 
 def _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
-              workers, fmt, input_format, recursive, json_out, overwrite) -> None:
-    from escape_cli.cli.batch import CompletionJob, plan_jobs, run_jobs
+              workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
+              json_out, overwrite) -> None:
+    from escape_cli.cli.batch import ENGINES, CompletionJob, check_model, parse_shard, plan_jobs, run_jobs
     from escape_cli.errors import EscapeError
 
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     if solver not in ("batched", "scipy"):
         raise typer.BadParameter("must be batched or scipy", param_hint="--solver")
+    if engine not in ENGINES:
+        raise typer.BadParameter(f"must be {' or '.join(ENGINES)}", param_hint="--engine")
+    if ray_address is not None and engine != "ray":
+        raise typer.BadParameter("needs --engine ray", param_hint="--ray-address")
+    if not inputs and files_from is None:
+        raise typer.BadParameter("give input files, folders or globs, or --files-from FILE", param_hint="INPUTS")
+    shard_of = parse_shard(shard)
     points = _checked_points(model, points)
-    jobs = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, overwrite=overwrite)
-    _check_job_outputs(jobs, fmt)
+    check_model(str(model) if model else None, threads=0)
+    plan = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, files_from=files_from, shard=shard_of)
+    _check_job_outputs(plan.jobs, fmt)
     settings = CompletionJob.Settings(
         model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
-        snap_radius=snap_radius,
-        residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite, input_format=input_format,
+        snap_radius=snap_radius, residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
+        input_format=input_format, skip_existing=skip_existing,
     )
     summary_stream = sys.stdout if json_out and output != "-" else sys.stderr
-    failures = run_jobs(jobs, settings, workers=workers, summary_stream=summary_stream)
+    failures, _ = run_jobs(plan, settings, workers=workers, engine=engine, ray_address=ray_address, summary_stream=summary_stream)
     if failures:
-        raise EscapeError(f"{failures} of {len(jobs)} file(s) failed")
+        raise EscapeError(f"{failures} of {len(plan.jobs)} file(s) failed")
 
 
 def _checked_points(model: Optional[Path], points: Optional[int]) -> int:

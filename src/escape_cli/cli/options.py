@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, Optional
+from typing import Callable, Iterable, Optional
 
 import typer
 
 from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.formats import FORMAT_LIST
+from escape_cli.errors import OutputExistsError, errors_about  # noqa: F401 (used by the commands)
 
 
 def number_check(*, minimum: float | None = None, above: float | None = None, maximum: float | None = None) -> Callable:
@@ -84,20 +84,3 @@ def print_summary(line: str) -> None:
 
     if logging.getLogger("escape").isEnabledFor(logging.WARNING):
         print(line, file=sys.stderr)
-
-
-@contextmanager
-def errors_about(name: str) -> Iterator[None]:
-    """Prefix the escape errors raised inside the block with `name` (the file concerned).
-
-    A core function's "has 5 points; at least 8 needed" becomes
-    "scan.ply: has 5 points; at least 8 needed".
-    """
-    from escape_cli.errors import EscapeError
-
-    try:
-        yield
-    except EscapeError as err:
-        if str(err).startswith(f"{name}:"):
-            raise
-        raise type(err)(f"{name}: {err}") from None

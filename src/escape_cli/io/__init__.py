@@ -28,7 +28,7 @@ from escape_cli.core.checks import as_points
 from escape_cli.errors import InputFileError, PointCloudError
 from escape_cli.formats import CLOUD_SUFFIXES, FORMAT_LIST, FORMATS
 from escape_cli.io.common import Fields, coordinate_dtype_for, storage_dtype
-from escape_cli.io.files import display_name, is_stdio, read_input_bytes, write_output_bytes
+from escape_cli.io.files import check_writable_folder, display_name, is_stdio, read_input_bytes, write_output_bytes
 from escape_cli.io.h5 import is_h5, parse_h5, serialize_h5
 from escape_cli.io.las import is_las, parse_las, serialize_las, template_layout
 from escape_cli.io.npy import is_npy, is_npz, parse_array, parse_npy, serialize_array, serialize_npy, serialize_npz
@@ -40,10 +40,13 @@ __all__ = [
     "CLOUD_SUFFIXES",
     "FORMATS",
     "coordinate_dtype_for",
+    "check_writable_folder",
     "display_name",
     "format_from_path",
+    "input_format",
     "is_stdio",
     "output_format",
+    "parse_point_fields",
     "read_array",
     "read_point_fields",
     "read_points",
@@ -151,13 +154,48 @@ def read_point_fields(path: str | Path, fmt: str | None = None) -> tuple[np.ndar
     InputFileError, PointCloudError
         As `read_points`.
     """
-    fmt = _checked_format(fmt) if fmt is not None else (None if is_stdio(path) else format_from_path(path))
-    name = display_name(path)
-    data = read_input_bytes(path)
+    fmt = input_format(path, fmt)  # an unknown extension is reported before the file is read
+    return parse_point_fields(read_input_bytes(path), display_name(path), fmt)
+
+
+def input_format(path: str | Path, fmt: str | None = None) -> str | None:
+    """The format `read_points(path, fmt)` will parse: `fmt`, else the extension (None: sniffed, for ``-``).
+
+    Raises
+    ------
+    InputFileError
+        Unknown format or extension.
+    """
+    if fmt is not None:
+        return _checked_format(fmt)
+    return None if is_stdio(path) else format_from_path(path)
+
+
+def parse_point_fields(data: bytes, name: str, fmt: str | None = None) -> tuple[np.ndarray, Fields]:
+    """`read_point_fields` on the bytes of a file already read (by a batch engine's reader).
+
+    Parameters
+    ----------
+    data : bytes
+        The whole file.
+    name : str
+        The name used in messages (the path as given).
+    fmt : str, optional
+        One of `FORMATS`; None sniffs it from the bytes.
+
+    Returns
+    -------
+    points : (N, 3) float64
+    fields : dict of str to (N,) float64
+
+    Raises
+    ------
+    InputFileError, PointCloudError
+        As `read_points`.
+    """
     if not data:
         raise InputFileError(f"{name}: empty file")
-    if fmt is None:
-        fmt = sniff_format(data)
+    fmt = sniff_format(data) if fmt is None else _checked_format(fmt)
     xyz, fields = _parse(data, name, fmt)
     return _finite_rows(xyz, fields, name)
 

@@ -138,7 +138,7 @@ def check_output_folder(folder: str | Path, *, inputs: Iterable = ()) -> None:
     """
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
-        raise OutputFileError(f"{folder} is a file, not a folder")
+        raise OutputFileError(f"cannot write into {folder}: it is a file, not a folder")
     resolved = folder.resolve()
     for source in inputs:
         if source is None or is_stdio(source):
@@ -276,8 +276,38 @@ def _write_stdout(data: bytes) -> None:
         raise OutputFileError(f"cannot write to stdout: {err.strerror or err}") from None
 
 
-def _create_temp_file(target: Path) -> Path:
-    """Create an empty, exclusive temporary file beside `target` (umask applies)."""
+def check_writable_folder(folder: str | Path, *, create: bool = False) -> None:
+    """Make sure files can be created in `folder` (with `create`, making it and its parents first).
+
+    A command calls this before any work so that an unwritable output folder is reported
+    at once, not after the computation. Beyond `check_output_folder` it creates and
+    removes one empty temporary file, which also catches what permission bits do not
+    show (a read-only file system, a root user without rights there).
+
+    Raises
+    ------
+    OutputFileError
+        `folder` is a file, is missing (without `create`) or cannot be made, or takes no
+        new files.
+    """
+    folder = Path(folder)
+    if not folder.exists() and not create:
+        raise OutputFileError(f"cannot write to {folder}: the folder does not exist")
+    check_output_folder(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputFileError(f"cannot create output folder {folder}: {err.strerror or err}") from None
+    probe = _create_temp_file(folder / "escape-write-check", f"cannot write to folder {folder}")
+    probe.unlink()
+
+
+def _create_temp_file(target: Path, what: str | None = None) -> Path:
+    """Create an empty, exclusive temporary file beside `target` (umask applies).
+
+    `what` starts the error message (default: "cannot write TARGET").
+    """
+    what = what or f"cannot write {target}"
     for attempt in range(100):
         temp = target.with_name(f".{target.name}.{os.getpid()}.{attempt}.tmp")
         try:
@@ -285,12 +315,12 @@ def _create_temp_file(target: Path) -> Path:
         except FileExistsError:
             continue
         except PermissionError:
-            raise OutputFileError(f"cannot write {target}: permission denied") from None
+            raise OutputFileError(f"{what}: permission denied") from None
         except OSError as err:
-            raise OutputFileError(f"cannot write {target}: {err.strerror or err}") from None
+            raise OutputFileError(f"{what}: {err.strerror or err}") from None
         os.close(fd)
         return temp
-    raise OutputFileError(f"cannot write {target}: no free temporary name beside it")
+    raise OutputFileError(f"{what}: no free temporary name beside it")
 
 
 def _write_all(temp: Path, data: bytes, target: Path) -> None:
