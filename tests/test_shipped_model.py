@@ -18,9 +18,35 @@ def test_model_card_and_metadata():
     meta = json.loads(MODEL.with_suffix(".json").read_text())
     assert MODEL.stat().st_size < 50e6
     assert meta["k"] == 8 and meta["input_points"] == 2048
-    assert meta["normalization"]["target_radius"] > 0
     assert meta["training"]["train_objects"] > 0 and meta["validation"]
     assert (REPO / "models" / "README.md").exists()  # the model card stays beside the curve
+    assert meta["frame"]["kind"] == "partial"  # trained in the scan's own frame: units do not matter
+    assert meta["frame"]["rows"] > 0 and meta["frame"]["radius"] > 0
+    assert meta["output_points"] == 16384
+
+
+@pytest.mark.parametrize("path", realdata_clouds(), ids=realdata_id)
+def test_network_output_is_never_negative_on_real_scans(path, realdata_dir):
+    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.encoding import distance_matrix
+    from escape_cli.core.normalize import network_input
+    from escape_cli.inference import load_model
+    from escape_cli.io import read_points
+
+    net = load_model(str(MODEL))
+    net_in = network_input(read_points(path), net.input_points, net.frame)
+    anchors = select_anchors(net_in.observed, **net.anchors.to_dict())
+    assert net.predict(distance_matrix(net_in.rows, anchors.points).astype(np.float32)[None]).min() >= 0.0
+
+
+def test_network_output_is_never_negative_on_random_inputs():
+    from escape_cli.inference import load_model
+
+    net = load_model(str(MODEL))
+    rng = np.random.default_rng(0)
+    shape = (2, net.input_points, net.k)
+    for inputs in (rng.random(shape), rng.random(shape) * 20.0, np.zeros(shape), rng.normal(size=shape) * 3.0):
+        assert net.predict(inputs.astype(np.float32)).min() >= 0.0
 
 
 def test_shipped_model_is_the_default(monkeypatch):
@@ -43,7 +69,10 @@ def test_completes_every_real_scan(path, realdata_dir, tmp_path):
     points = read_points(out)
     summary = json.loads(res.stderr_lines[-1])
     assert points.shape == (summary["points"], 3) and np.all(np.isfinite(points))
+    # 16384 predicted rows; a scan of fewer than 2048 distinct points repeats network rows, whose copies are dropped
     assert len(points) == min(16384, summary["available_points"])
+    if len(np.unique(read_points(path), axis=0)) >= 2048:
+        assert len(points) == 16384
     assert len(np.unique(points, axis=0)) == len(points), "no repeated points"
     cloud = read_points(path)
     # the output stays in the input's frame and units: same place, comparable size
