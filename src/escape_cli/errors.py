@@ -62,6 +62,14 @@ def errors_about(name: str):
     try:
         yield
     except EscapeError as err:
-        if str(err).startswith(f"{name}:"):
+        named = about(name, err)
+        if named is err:
             raise
-        raise type(err)(f"{name}: {err}") from None
+        raise named from None
+
+
+def about(name: str, err: EscapeError) -> EscapeError:
+    """`err` with its message prefixed by `name` (the same error when it already starts with it)."""
+    if str(err).startswith(f"{name}:"):
+        return err
+    return type(err)(f"{name}: {err}")

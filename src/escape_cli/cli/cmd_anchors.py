@@ -17,9 +17,9 @@ from escape_cli.cli.options import (
     JSON,
     OVERWRITE,
     check_output,
-    errors_about,
     print_summary,
 )
+from escape_cli.errors import errors_about
 
 
 def command(

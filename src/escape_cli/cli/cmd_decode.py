@@ -6,7 +6,8 @@ from typing import Literal, Optional
 
 import typer
 
-from escape_cli.cli.options import ASCII, FORMAT, OVERWRITE, check_output, errors_about, print_summary
+from escape_cli.cli.options import ASCII, FORMAT, OVERWRITE, check_output, print_summary
+from escape_cli.errors import errors_about
 
 
 def command(

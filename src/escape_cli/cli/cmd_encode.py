@@ -15,9 +15,9 @@ from escape_cli.cli.options import (
     INPUT_FORMAT,
     OVERWRITE,
     check_output,
-    errors_about,
     print_summary,
 )
+from escape_cli.errors import errors_about
 
 
 def default_anchors_path(output: str) -> str:

@@ -9,7 +9,6 @@ import typer
 
 from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.formats import FORMAT_LIST
-from escape_cli.errors import OutputExistsError, errors_about  # noqa: F401 (used by the commands)
 
 
 def number_check(*, minimum: float | None = None, above: float | None = None, maximum: float | None = None) -> Callable:

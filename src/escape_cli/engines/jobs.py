@@ -16,6 +16,7 @@ from escape_cli.errors import (
     EscapeError,
     InputFileError,
     OutputExistsError,
+    about,
     errors_about,
 )
 
@@ -246,16 +247,9 @@ def _guarded_many(jobs, ready, settings: Settings) -> list:
             threads=settings.threads,
         )
     except EscapeError as err:  # the model or an option: every scan of the chunk fails alike
-        return [failure(jobs[position], f"{source_name(jobs[position])}: {err}") for position, *_ in ready]
+        results = [err] * len(ready)
     except Exception as err:
         return [failure(jobs[position], f"internal error: {type(err).__name__}: {err}") for position, *_ in ready]
-    out = []
-    for (position, *_), result in zip(ready, results):
-        job = jobs[position]
-        if isinstance(result, EscapeError):
-            message = str(result)
-            name = source_name(job)
-            out.append(failure(job, message if message.startswith(f"{name}:") else f"{name}: {message}"))
-        else:
-            out.append(result)
-    return out
+    named = [(jobs[position], result) for (position, *_), result in zip(ready, results)]
+    return [failure(job, str(about(source_name(job), result))) if isinstance(result, EscapeError) else result
+            for job, result in named]
