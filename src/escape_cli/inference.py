@@ -7,7 +7,6 @@ import json
 import os
 import threading
 from concurrent.futures import Future
-from functools import lru_cache
 from importlib import resources
 from pathlib import Path
 
@@ -39,13 +38,20 @@ def default_model_path() -> Path:
 
 
 class CompletionModel:
-    """An exported network: (B, N, K) partial distances -> (B, M, K) complete distances."""
+    """An exported network: (B, N, K) partial distances -> (B, M, K) complete distances.
+
+    The metadata and checksum are read at once; the onnxruntime session is built (or
+    joined, when `preload_model` started it) on construction and waited for on first
+    use, so a caller can prepare its input meanwhile.
+    """
 
     def __init__(self, path: Path, threads: int = 0):
         self.path = Path(path)
         self.meta = read_metadata(self.path)
         self._verify_checksum()
-        self.session = _session(str(self.path), threads)
+        self._session = _session_loading(str(self.path), threads, background=False)
+        if self.failed:  # built here and refused: say so now
+            self._session.result()
         self.input_name = self.meta.get("input_name", "partial_distances")
         self.output_name = self.meta.get("output_name", "distances")
 
@@ -83,6 +89,16 @@ class CompletionModel:
             return PartialFrame(int(frame["rows"]), float(frame["radius"]))
         except (KeyError, TypeError, ValueError):
             raise ModelError(f"{self.path.with_suffix('.json')}: bad 'frame' record {frame}") from None
+
+    @property
+    def session(self):
+        """The onnxruntime session (waits for a load under way; ModelError if it failed)."""
+        return self._session.result()
+
+    @property
+    def failed(self) -> bool:
+        """Whether building the session has ended in an error."""
+        return self._session.done() and self._session.exception() is not None
 
     @property
     def anchors(self) -> AnchorSettings:
@@ -191,8 +207,8 @@ def quiet_onnxruntime(ort=None) -> None:
     ort.set_default_logger_severity(3)
 
 
-@lru_cache(maxsize=4)
 def _session(path: str, threads: int):
+    """A new onnxruntime session of `path` (ModelError when onnxruntime refuses the file)."""
     import onnxruntime as ort
 
     quiet_onnxruntime(ort)
@@ -211,45 +227,66 @@ def _session(path: str, threads: int):
 def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
     """Load (and cache) a model; None means the default model.
 
-    A load already under way (`preload_model`) is waited for, not repeated. Failed
-    loads are not cached.
+    Returns once the metadata and checksum are checked; the session is waited for when
+    it is first used (`CompletionModel.session`). A session load already under way
+    (`preload_model`) is joined, not repeated. Failed loads are not cached.
     """
-    return _loading(path, threads, background=False).result()
+    model_path = Path(path) if path else default_model_path()
+    key = (str(model_path), threads)
+    with _MODELS_LOCK:
+        model = _MODELS.get(key)
+        if model is not None and model.failed:  # a background load that failed: try again
+            del _MODELS[key]
+            model = None
+    if model is None:
+        model = CompletionModel(model_path, threads)
+        with _MODELS_LOCK:
+            model = _MODELS.setdefault(key, model)
+    return model
 
 
 def preload_model(path: str | None = None, threads: int = 0) -> Future:
-    """Start `load_model(path, threads)` in a background thread and return at once.
+    """Start building the session of `load_model(path, threads)` in a background thread; return at once.
 
     onnxruntime builds the session without holding the interpreter lock, so a command
-    that knows it will need the model can import numpy and scipy and read its input
-    meanwhile; `load_model` with the same arguments then waits for this load. Wait for
-    the returned future before the process exits.
+    that knows it will need the model can import numpy and scipy and read and prepare
+    its input meanwhile; `load_model` with the same arguments joins this load. Wait for
+    the returned future before the process exits. Errors (a missing model, a file
+    onnxruntime refuses) are left in the future: `load_model` reports them.
     """
-    return _loading(path, threads, background=True)
+    try:
+        model_path = Path(path) if path else default_model_path()
+    except EscapeError as err:
+        failed: Future = Future()
+        failed.set_exception(err)
+        return failed
+    return _session_loading(str(model_path), threads, background=True)
 
 
-_MODELS: dict = {}  # (path, threads) -> Future of a CompletionModel
+_MODELS: dict = {}  # (path, threads) -> CompletionModel
+_SESSIONS: dict = {}  # (path, threads) -> Future of an onnxruntime session
 _MODELS_LOCK = threading.Lock()
 
 
-def _loading(path: str | None, threads: int, background: bool) -> Future:
+def _session_loading(path: str, threads: int, background: bool) -> Future:
+    """The (cached) future session of `path`: built here, or in a new thread when `background`."""
     key = (path, threads)
     with _MODELS_LOCK:
-        future = _MODELS.get(key)
+        future = _SESSIONS.get(key)
         if future is not None:
             return future
-        future = _MODELS[key] = Future()
+        future = _SESSIONS[key] = Future()
 
-    def load() -> None:
+    def build() -> None:
         try:
-            future.set_result(CompletionModel(Path(path) if path else default_model_path(), threads))
+            future.set_result(_session(path, threads))
         except BaseException as err:  # handed to whoever waits; not cached
             with _MODELS_LOCK:
-                _MODELS.pop(key, None)
+                _SESSIONS.pop(key, None)
             future.set_exception(err)
 
     if background:
-        threading.Thread(target=load, name="escape-model-load", daemon=True).start()
+        threading.Thread(target=build, name="escape-model-load", daemon=True).start()
     else:
-        load()
+        build()
     return future

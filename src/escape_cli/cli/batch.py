@@ -118,11 +118,18 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
     return i, n
 
 
-def check_model(model: str | None, threads: int) -> None:
-    """Load the model (cached) so that a missing, misplaced or broken one is reported before any work."""
+def check_model(model: str | None, threads: int, wait: bool = True) -> None:
+    """Load the model (cached) so that a missing, misplaced or broken one is reported before any work.
+
+    The metadata and checksum are always checked here; with `wait` False the session is
+    left building (one scan: it is prepared meanwhile, and a file onnxruntime refuses is
+    reported before anything is written).
+    """
     from escape_cli.inference import load_model
 
-    load_model(model, threads)
+    net = load_model(model, threads)
+    if wait:
+        net.session  # noqa: B018 (waits for the session; raises ModelError if it failed)
 
 
 def run_jobs(plan: Plan, settings: CompletionJob.Settings, *, workers: int, engine: str = "local",

@@ -52,7 +52,7 @@ def command(
     try:
         _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
                   workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
-                  json_out, overwrite)
+                  json_out, overwrite, preloading=loading is not None)
     finally:
         if loading is not None:
             wait([loading])  # never leave the loader running at exit
@@ -60,7 +60,7 @@ def command(
 
 def _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
               workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
-              json_out, overwrite) -> None:
+              json_out, overwrite, preloading: bool = False) -> None:
     from escape_cli.cli.batch import ENGINES, CompletionJob, check_model, parse_shard, plan_jobs, run_jobs
     from escape_cli.errors import EscapeError
 
@@ -76,7 +76,7 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
         raise typer.BadParameter("give input files, folders or globs, or --files-from FILE", param_hint="INPUTS")
     shard_of = parse_shard(shard)
     points = _checked_points(model, points)
-    check_model(str(model) if model else None, threads=0)
+    check_model(str(model) if model else None, threads=0, wait=not preloading)
     plan = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, files_from=files_from, shard=shard_of)
     _check_job_outputs(plan.jobs, fmt)
     settings = CompletionJob.Settings(
