@@ -61,6 +61,63 @@ def test_complete_never_writes_over_its_input(scan, tmp_path, tiny_model, link):
     assert _files(tmp_path) == before
 
 
+@pytest.mark.parametrize("command", ["complete", "anchors"])
+def test_a_symlinked_output_is_written_through(scan, tmp_path, tiny_model, command):
+    """--overwrite of a symlink replaces what it points to, as a shell redirection would; the link stays."""
+    (tmp_path / "real.ply").write_text("old\n")
+    link = tmp_path / "link.ply"
+    link.symlink_to(tmp_path / "real.ply")
+    extra = ["--model", tiny_model, "--points", "256"] if command == "complete" else []
+    result = run_escape(command, scan, "-o", link, "--overwrite", *extra)
+    assert result.exit_code == 0, result.stderr
+    assert link.is_symlink() and os.readlink(link) == str(tmp_path / "real.ply")
+    assert len(read_points(tmp_path / "real.ply")) == (256 if command == "complete" else 8)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no named pipes here")
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_a_named_pipe_output_is_written_into_not_replaced(scan, tmp_path, overwrite):
+    import stat
+    import threading
+
+    fifo = tmp_path / "pipe.ply"
+    os.mkfifo(fifo)
+    received = []
+    reader = threading.Thread(target=lambda: received.append(fifo.read_bytes()), daemon=True)
+    reader.start()
+    result = run_escape("anchors", scan, "-o", fifo, *overwrite)
+    reader.join(timeout=30)
+    assert result.exit_code == 0, result.stderr
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode)  # still the pipe, not a file put in its place
+    assert received and received[0].startswith(b"ply\n") and len(received[0]) > 100
+
+
+@pytest.mark.skipif(not hasattr(os, "mknod") or os.geteuid() != 0, reason="making device nodes needs root")
+@pytest.mark.parametrize("overwrite", [[], ["--overwrite"]])
+def test_a_character_device_output_is_written_into_not_replaced(scan, tmp_path, tiny_model, overwrite):
+    """`-o /dev/null` discards the output (here a null device made in tmp_path), with or without --overwrite."""
+    import stat
+
+    null = tmp_path / "null"
+    os.mknod(null, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    for argv in (["anchors", scan], ["complete", scan, "--model", tiny_model, "--points", "256"]):
+        result = run_escape(*argv, "-o", null, "--format", "ply", *overwrite)
+        assert result.exit_code == 0, result.stderr
+        assert stat.S_ISCHR(os.stat(null).st_mode)
+
+
+@pytest.mark.skipif(not hasattr(os, "mknod") or os.geteuid() != 0, reason="making device nodes needs root")
+def test_a_block_device_output_is_refused(scan, tmp_path):
+    import stat
+
+    disk = tmp_path / "disk"
+    os.mknod(disk, 0o600 | stat.S_IFBLK, os.makedev(7, 0))
+    result = run_escape("anchors", scan, "-o", disk, "--format", "ply", "--overwrite")
+    assert result.exit_code == 1
+    _one_line(result, "it is a block device, not a file")
+    assert stat.S_ISBLK(os.stat(disk).st_mode)
+
+
 def test_complete_anchors_out_is_never_an_input(scan, tmp_path, tiny_model):
     result = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--anchors-out", scan, "--overwrite", "--model", tiny_model)
     _one_line(result, "scan.ply is also an input")
@@ -171,6 +228,35 @@ def test_bad_model_path_is_reported_before_reading(tmp_path, what):
     _one_line(result, expected)
 
 
+@pytest.mark.parametrize("batch", [False, True], ids=["one scan", "a folder"])
+@pytest.mark.parametrize("damage", ["garbage, no checksum", "checksum mismatch"])
+def test_a_model_onnxruntime_refuses_fails_in_one_line_and_writes_nothing(scan, tmp_path, tiny_model, batch, damage):
+    """One scan prepares itself while the session builds: a refused model still ends in one line, nothing written."""
+    import json
+
+    model = tmp_path / "model" / "m.onnx"
+    model.parent.mkdir()
+    meta = json.loads(tiny_model.with_suffix(".json").read_text())
+    if damage == "garbage, no checksum":
+        meta.pop("sha256", None)
+        model.write_bytes(b"\x08\x07 not a protobuf model" * 64)
+    else:
+        model.write_bytes(tiny_model.read_bytes()[:-100])  # truncated: the checksum in the metadata differs
+    model.with_suffix(".json").write_text(json.dumps(meta))
+    out = tmp_path / "out"
+    out.mkdir()
+    if batch:
+        (tmp_path / "in").mkdir()
+        for name in ("a.ply", "b.ply"):
+            (tmp_path / "in" / name).write_bytes(scan.read_bytes())
+        result = run_escape("complete", tmp_path / "in", "-o", out, "--model", model)
+    else:
+        result = run_escape("complete", scan, "-o", out / "o.ply", "--model", model)
+    assert result.exit_code == 1
+    _one_line(result, "cannot load model" if damage == "garbage, no checksum" else "is corrupt: its checksum does not match")
+    assert _files(out) == {}
+
+
 # ------------------------------------------------------------------ the machine fails, not escape
 
 
@@ -220,7 +306,7 @@ def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", fake)
     from escape_cli.inference import _session
 
-    assert _session.__wrapped__("model.onnx", 0) == "session"
+    assert _session("model.onnx", 0) == "session"
     assert calls == [("severity", 3), ("session", "model.onnx")]
 
 

@@ -72,6 +72,12 @@ USAGE_ERRORS = [
     (["train", "--data", "d", "--out", "r", "--max-steps", "0"], "--max-steps: must be at least 1, got 0"),
     (["train", "--data", "d", "--out", "r", "--val-every", "-1"], "--val-every: must be at least 0, got -1"),
     (["train", "--data", "d", "--out", "r", "--val-limit", "0"], "--val-limit: must be at least 1, got 0"),
+    (["anchors", "s.ply", "-o", "o.ply", "--format", "bogus"], "unknown format 'bogus'; use one of ply, pcd"),
+    (["anchors", "s.ply", "--json", "--input-format", "bogus"], "unknown format 'bogus'; use one of ply, pcd"),
+    (["anchors", "s.ply", "-o", "o.bogus"], "unknown format '.bogus' for o.bogus; use --format"),
+    (["anchors", "s.ply", "-o", "anchors"], "cannot tell the format of anchors (no extension); use --format"),
+    (["complete", "s.ply", "-o", "o.ply", "--shard", "3/2"], "--shard: must be I/N with 0 <= I < N"),
+    (["eval", "--root", "d", "--split", "bogus"], "--split: must be train, val or test"),
     (["train", "--data", "d", "--out", "r", "--config", "bogus"], "--config: unknown config 'bogus'"),
     (["train", "--data", "d", "--out", "r", "--device", "bogus"], "--device: unknown device 'bogus'"),
 ]
@@ -103,6 +109,8 @@ def test_usage_error_is_one_line_with_exit_code_2(tmp_path, monkeypatch, argv, e
         (["anchors", "missing.ply", "--json"], "missing.ply: no such file"),
         (["complete", "missing.ply", "-o", "o.ply", "--model", "missing.onnx"], "model file missing.onnx does not exist"),
         (["dataset", "info", "missing"], "missing"),
+        (["eval", "--dataset", "pair", "--root", "missing"], "missing is not a folder"),
+        (["eval", "--dataset", "pairs", "--root", "missing"], "missing is not a folder"),
     ],
 )
 def test_data_error_is_one_line_with_exit_code_1(tmp_path, monkeypatch, argv, expected):

@@ -23,6 +23,10 @@ class InputFileError(EscapeError):
     """A file is missing, unreadable, corrupt or in an unknown format."""
 
 
+class FormatError(ParameterError, InputFileError):
+    """A format name (``--format``, ``--input-format``) or file extension escape does not know: a usage error."""
+
+
 class PointCloudError(EscapeError, ValueError):
     """A cloud cannot be used: empty, too small, non-finite, wrong shape."""
 

@@ -186,6 +186,8 @@ def evaluate_pairs(
     from escape_cli.io import CLOUD_SUFFIXES, read_points
 
     root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root} is not a folder")
     files = sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES)
     truth_files = [p for p in files if p.stem == "complete"]
     if len(truth_files) != 1:

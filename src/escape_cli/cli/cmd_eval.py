@@ -61,6 +61,8 @@ def command(
 
     if dataset not in ("pcn", "pair", "pairs", "kitti"):
         raise typer.BadParameter("must be pcn, pair, pairs or kitti", param_hint="--dataset")
+    if split not in ("train", "val", "test"):
+        raise typer.BadParameter("must be train, val or test", param_hint="--split")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     model_path = model if model is not None else default_model_path()

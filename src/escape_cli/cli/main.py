@@ -214,6 +214,8 @@ def run(argv: list[str]) -> int:
                 return _fail(f"{usage_error_line(err).rstrip('.')} (see --help)", 2)
             return _fail(" ".join(err.format_message().split()), getattr(err, "exit_code", 1))
         except EscapeError as err:
+            if err.exit_code == 2:  # a usage error, like click's
+                return _fail(f"{str(err).rstrip('.')} (see --help)", 2)
             return _fail(str(err), err.exit_code)
         except MemoryError:
             return _fail("out of memory (a smaller cloud, or fewer --points, may fit)", 1)

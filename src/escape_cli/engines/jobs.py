@@ -152,6 +152,7 @@ def outputs_to_write(job: CompletionJob, settings: Settings) -> tuple[str, ...]:
         Unknown output format, or residuals asked for an npy output.
     """
     from escape_cli.io import is_stdio, output_format
+    from escape_cli.io.files import is_stream
 
     out_fmt = output_format(job.output, settings.fmt)
     if settings.residuals and out_fmt == "npy":
@@ -162,7 +163,7 @@ def outputs_to_write(job: CompletionJob, settings: Settings) -> tuple[str, ...]:
             continue
         if fmt is None:
             fmt = output_format(target)
-        if is_stdio(target) or not Path(target).exists():
+        if is_stdio(target) or is_stream(target) or not Path(target).exists():  # nothing to replace
             todo.append(target)
             continue
         if settings.skip_existing:

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from escape_cli.core.checks import as_points
-from escape_cli.errors import InputFileError, PointCloudError
+from escape_cli.errors import FormatError, InputFileError, PointCloudError
 from escape_cli.formats import CLOUD_SUFFIXES, FORMAT_LIST, FORMATS
 from escape_cli.io.common import Fields, coordinate_dtype_for, storage_dtype
 from escape_cli.io.files import check_writable_folder, display_name, is_stdio, read_input_bytes, write_output_bytes
@@ -84,8 +84,8 @@ def format_from_path(path: str | Path) -> str:
     if fmt in FORMATS:
         return fmt
     if not suffix:
-        raise InputFileError(f"cannot tell the format of {path} (no extension); use --format ({FORMAT_LIST})")
-    raise InputFileError(f"unknown format '{suffix}' for {path}; use --format ({FORMAT_LIST})")
+        raise FormatError(f"cannot tell the format of {path} (no extension); use --format ({FORMAT_LIST})")
+    raise FormatError(f"unknown format '{suffix}' for {path}; use --format ({FORMAT_LIST})")
 
 
 def sniff_format(data: bytes) -> str:
@@ -323,7 +323,7 @@ def write_array(path: str | Path, array, *, overwrite: bool = False) -> None:
 def _checked_format(fmt: str) -> str:
     normalised = fmt.lower().lstrip(".")
     if normalised not in FORMATS:
-        raise InputFileError(f"unknown format '{fmt}'; use one of {FORMAT_LIST}")
+        raise FormatError(f"unknown format '{fmt}'; use one of {FORMAT_LIST}")
     return normalised
 
 

@@ -7,7 +7,11 @@ The rules for an output, in one place (`check_output_path`, called by every comm
 before any work, and again by `write_output_bytes`): it is never one of the inputs (the
 same path, a symlink to it or a hard link: the same file, whatever ``--overwrite``
 says), never a directory, replaces an existing file only with ``overwrite``, and its
-directory must exist and be writable. Within `guard_inputs()` (the CLI runs every
+directory must exist and be writable. A symlink is written through: its target gets
+the new bytes, the link stays. An existing character device or FIFO (``/dev/null``,
+``/dev/stdout``, a named pipe) is a stream: the bytes are written into it, in order, and
+it is never replaced by a file, so it needs no ``--overwrite``; a block device or socket
+is refused. Within `guard_inputs()` (the CLI runs every
 command inside it) every file read is remembered, and a write that would replace one
 of them is refused too.
 """
@@ -16,6 +20,7 @@ from __future__ import annotations
 
 import errno
 import os
+import stat
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -118,6 +123,8 @@ def check_output_path(
         return
     target = Path(path)
     check_not_input(target, inputs)
+    if is_stream(target):
+        return
     if target.is_dir():
         raise OutputFileError(f"{target} is a directory; give a file name")
     if target.exists() and not overwrite:
@@ -210,8 +217,11 @@ def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False
     if is_stdio(path):
         _write_stdout(data)
         return
-    target = Path(path)
-    check_output_path(target, overwrite=overwrite)
+    check_output_path(path, overwrite=overwrite)
+    if is_stream(path):
+        _write_stream(Path(path), data)
+        return
+    target = _write_through_links(Path(path))
     _check_not_read(target)
     temp = _create_temp_file(target)
     try:
@@ -224,6 +234,52 @@ def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False
     finally:
         if temp.exists():
             temp.unlink()
+
+
+def is_stream(path: str | Path) -> bool:
+    """Whether `path` is an existing character device or FIFO (through symlinks).
+
+    Raises
+    ------
+    OutputFileError
+        `path` is a block device or a socket: no point cloud is written there.
+    """
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return False
+    if stat.S_ISBLK(mode) or stat.S_ISSOCK(mode):
+        kind = "a block device" if stat.S_ISBLK(mode) else "a socket"
+        raise OutputFileError(f"cannot write {path}: it is {kind}, not a file")
+    return stat.S_ISCHR(mode) or stat.S_ISFIFO(mode)
+
+
+def _write_stream(path: Path, data: bytes) -> None:
+    """All of `data` into a character device or FIFO, opened for writing only (never created)."""
+    try:
+        fd = os.open(path, os.O_WRONLY)
+    except OSError as err:
+        raise OutputFileError(f"cannot write {path}: {err.strerror or err}") from None
+    try:
+        view = memoryview(data)
+        while view:
+            view = view[os.write(fd, view) :]
+    except BrokenPipeError:
+        raise
+    except OSError as err:
+        raise OutputFileError(f"cannot write {path}: {err.strerror or err}") from None
+    finally:
+        os.close(fd)
+
+
+def _write_through_links(target: Path) -> Path:
+    """The file a write to `target` lands in: `target`, or what its chain of symlinks names."""
+    if not target.is_symlink():
+        return target
+    try:
+        return Path(os.path.realpath(target, strict=False))
+    except (OSError, ValueError):
+        return target
 
 
 def _nearest_existing(directory: Path) -> Path:
