@@ -141,7 +141,7 @@ def bad_value_message(err: typer.TyperException) -> str:
         record = err.__cause__.errors()[0]  # a pydantic ValidationError, duck-typed
         kind, limits, given = record["type"], record.get("ctx") or {}, record.get("input")
     except (AttributeError, IndexError, KeyError, TypeError):
-        return message
+        return _click_value_message(message, getattr(getattr(err, "param", None), "type", None))
     got = "" if given is None else f", got {_shown(given)}"
     for key, wording in (("ge", "at least"), ("gt", "greater than"), ("le", "at most"), ("lt", "less than")):
         if key in limits and kind.startswith(("greater_than", "less_than")):
@@ -153,6 +153,33 @@ def bad_value_message(err: typer.TyperException) -> str:
     if kind == "value_error":
         return message.removeprefix("Value error, ").rstrip(".")
     return message
+
+
+def _click_value_message(message: str, param_type) -> str:
+    """click's own range and type messages ("0 is not in the range x>=1.", "'abc' is not a
+    valid integer.", typer before 0.29) in the wording of `escape_cli.core.params`."""
+    import re
+
+    match = re.match(r"^(?P<value>.+?) is not a valid (?P<kind>integer|int|float)\b", message)
+    if match:
+        wanted = "a number" if match["kind"] == "float" else "an integer"
+        return f"must be {wanted}, got {_shown(match['value'].strip(chr(39)))}"
+    match = re.match(r"^(?P<value>.+?) is not in the range ", message)
+    if not match:
+        return message.rstrip(".")
+    given = match["value"].strip(chr(39))
+    low, high = getattr(param_type, "min", None), getattr(param_type, "max", None)
+    try:
+        value = float(given)
+    except ValueError:
+        return message.rstrip(".")
+    if low is not None and (value < low or (value == low and getattr(param_type, "min_open", False))):
+        wording = "greater than" if getattr(param_type, "min_open", False) else "at least"
+        return f"must be {wording} {low:g}, got {given}"
+    if high is not None:
+        wording = "less than" if getattr(param_type, "max_open", False) else "at most"
+        return f"must be {wording} {high:g}, got {given}"
+    return message.rstrip(".")
 
 
 def _shown(value) -> str:
