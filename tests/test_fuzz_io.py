@@ -1,7 +1,7 @@
 """Fuzzing the readers and the CLI: damaged files never crash, never exit 70, never lose anything.
 
 Every variant the project reads (PLY ascii and binary, PCD ascii, binary and
-binary_compressed, XYZ, NPY) is damaged at random: truncated, bytes flipped or
+binary_compressed, XYZ, NPY, LAS and LAZ) is damaged at random: truncated, bytes flipped or
 inserted, header lines edited, dropped or doubled. The parsers must then give a cloud
 (finite float64 coordinates, fields of the same length) or raise an `EscapeError` with
 a one-line printable message; through the CLI (in-process, `cli_runner.run_escape`)
@@ -61,6 +61,7 @@ def _valid_files() -> dict[str, tuple[str, bytes]]:
     rng = np.random.default_rng(21)
     points = rng.normal(size=(40, 3)) * [0.3, 0.2, 0.1]
     fields = {"intensity": rng.uniform(0, 1, 40)}
+    las_fields = {"intensity": np.round(fields["intensity"] * 65535)}  # LAS intensity: 16-bit counts
     files = {
         "ply-binary": ("ply", cloud_io.ply.serialize_ply(points, fields, binary=True)),
         "ply-ascii": ("ply", cloud_io.ply.serialize_ply(points, fields, binary=False)),
@@ -69,6 +70,8 @@ def _valid_files() -> dict[str, tuple[str, bytes]]:
         "pcd-binary_compressed": ("pcd", _compressed_pcd(points, fields["intensity"])),
         "xyz": ("xyz", cloud_io.text.serialize_text(points, fields, fmt="xyz")),
         "npy": ("npy", cloud_io.npy.serialize_npy(points)),
+        "las": ("las", cloud_io.las.serialize_las(points, las_fields, compressed=False)),
+        "laz": ("laz", cloud_io.las.serialize_las(points, las_fields, compressed=True)),
     }
     for fmt, data in files.values():  # the seeds themselves are valid
         assert cloud_io._parse(data, "seed", fmt)[0].shape == (40, 3)
@@ -160,7 +163,7 @@ def test_every_truncation_fails_cleanly(variant, data):
 
 
 @settings(max_examples=60, deadline=None, derandomize=True)
-@given(st.binary(min_size=1, max_size=300), st.sampled_from(["ply", "pcd", "xyz", "npy"]))
+@given(st.binary(min_size=1, max_size=300), st.sampled_from(["ply", "pcd", "xyz", "npy", "las", "laz"]))
 def test_garbage_fails_cleanly(garbage, fmt):
     _check_parse(fmt, garbage)
 
@@ -242,3 +245,17 @@ def test_valid_clouds_round_trip_through_every_writer_and_reader(tmp_path_factor
             np.testing.assert_array_equal(got, want)
         else:
             np.testing.assert_array_equal(got.astype(np.float32), want.astype(np.float32))
+
+
+@settings(max_examples=20, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck))
+@given(cloud=clouds(), compressed=st.booleans())
+def test_valid_clouds_round_trip_through_las_within_its_scale(tmp_path_factory, cloud, compressed):
+    """LAS stores integers on a grid it chooses for the cloud: back within half a grid step."""
+    points, _ = cloud
+    points = points / max(1.0, float(np.abs(points).max())) * 1e4  # LAS grids hold about 2**31 steps per axis
+    path = tmp_path_factory.mktemp("las") / ("c.laz" if compressed else "c.las")
+    cloud_io.write_points(path, points)
+    back = cloud_io.read_points(path)
+    layout = cloud_io.las.layout_for(points)
+    assert back.shape == points.shape
+    assert np.all(np.abs(back - points) <= 0.5 * layout.scales + 1e-9 * np.abs(points).max())

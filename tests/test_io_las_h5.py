@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import io as stdlib_io
 import logging
 import sys
@@ -155,6 +157,53 @@ def test_broken_las_is_one_error(tmp_path, utm_scan, damage):
     data = path.read_bytes()
     path.write_bytes(data[: len(data) // 2] if damage == "truncated" else b"LASF" + b"\x00" * 300)
     with pytest.raises(InputFileError, match=r"^.*b\.laz: corrupt or truncated LAS/LAZ file") as err:
+        cloud_io.read_points(path)
+    assert "\n" not in str(err.value)
+
+
+def _hostile(data: bytes, offset: int, fmt: str, value: int) -> bytes:
+    import struct
+
+    out = bytearray(data)
+    struct.pack_into(fmt, out, offset, value)
+    return bytes(out)
+
+
+@pytest.mark.parametrize(
+    ("suffix", "damage", "expected"),
+    [
+        (".las", "point count 2**36 (LAS 1.4 field)", "truncated LAS file (68719476736 points"),
+        (".las", "legacy point count 2**32 - 1", "truncated LAS file (4294967295 points"),
+        (".las", "2**32 - 1 VLRs", "4294967295 VLRs declared"),
+        (".las", "point data past the end", "corrupt LAS header (point data at byte"),
+        (".laz", "point count 2**36 (LAS 1.4 field)", "corrupt LAZ header (68719476736 points declared"),
+        (".laz", "2**32 - 1 chunks", "corrupt LAZ chunk table (4294967295 chunks declared"),
+        (".laz", "chunks of 2**32 - 2 points", "corrupt LAZ header (chunks of 4294967294 points"),
+    ],
+)
+def test_hostile_las_counts_are_refused_before_anything_is_allocated(tmp_path, utm_scan, suffix, damage, expected):
+    """Counts the file cannot hold would make laspy or lazrs reserve gigabytes (or abort): refused from the header."""
+    import struct
+
+    path = tmp_path / f"h{suffix}"
+    cloud_io.write_points(path, utm_scan)
+    data = path.read_bytes()
+    header_size, point_offset = struct.unpack_from("<HI", data, 94)
+    if damage.startswith("point count"):
+        data = _hostile(data, 247, "<Q", 2**36)
+    elif damage.startswith("legacy"):
+        data = _hostile(_hostile(data, 247, "<Q", 0), 107, "<I", 2**32 - 1)
+    elif damage.endswith("VLRs"):
+        data = _hostile(data, 100, "<I", 2**32 - 1)
+    elif damage == "point data past the end":
+        data = _hostile(data, 96, "<I", len(data) + 10)
+    elif damage.endswith("chunks"):
+        table = struct.unpack_from("<q", data, point_offset)[0]
+        data = _hostile(data, table + 4, "<I", 2**32 - 1)
+    else:  # the chunk size in the laszip VLR (record data after the VLR's 54-byte header, at +12)
+        data = _hostile(data, header_size + 54 + 12, "<I", 2**32 - 2)
+    path.write_bytes(data)
+    with pytest.raises(InputFileError, match=re.escape(expected)) as err:
         cloud_io.read_points(path)
     assert "\n" not in str(err.value)
 
