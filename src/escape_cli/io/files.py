@@ -261,15 +261,22 @@ def _write_stream(path: Path, data: bytes) -> None:
     except OSError as err:
         raise OutputFileError(f"cannot write {path}: {err.strerror or err}") from None
     try:
+        _write_to_descriptor(fd, data, f"cannot write {path}")
+    finally:
+        os.close(fd)
+
+
+def _write_to_descriptor(fd: int, data: bytes, what: str) -> None:
+    """Every byte of `data` to `fd`, across short writes; a reader that has gone raises
+    BrokenPipeError, any other failure OutputFileError starting with `what`."""
+    try:
         view = memoryview(data)
         while view:
             view = view[os.write(fd, view) :]
     except BrokenPipeError:
         raise
     except OSError as err:
-        raise OutputFileError(f"cannot write {path}: {err.strerror or err}") from None
-    finally:
-        os.close(fd)
+        raise OutputFileError(f"{what}: {err.strerror or err}") from None
 
 
 def _write_through_links(target: Path) -> Path:
@@ -323,13 +330,11 @@ def _write_stdout(data: bytes) -> None:
             stream.buffer.write(data)
             stream.buffer.flush()
             return
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
     except BrokenPipeError:
         raise
     except OSError as err:
         raise OutputFileError(f"cannot write to stdout: {err.strerror or err}") from None
+    _write_to_descriptor(fd, data, "cannot write to stdout")
 
 
 def check_writable_folder(folder: str | Path, *, create: bool = False) -> None:
