@@ -169,16 +169,15 @@ def _click_value_message(message: str, param_type) -> str:
         return message.rstrip(".")
     given = match["value"].strip(chr(39))
     low, high = getattr(param_type, "min", None), getattr(param_type, "max", None)
+    low_open, high_open = getattr(param_type, "min_open", False), getattr(param_type, "max_open", False)
     try:
         value = float(given)
     except ValueError:
         return message.rstrip(".")
-    if low is not None and (value < low or (value == low and getattr(param_type, "min_open", False))):
-        wording = "greater than" if getattr(param_type, "min_open", False) else "at least"
-        return f"must be {wording} {low:g}, got {given}"
+    if low is not None and (value < low or (value == low and low_open)):
+        return f"must be {'greater than' if low_open else 'at least'} {low:g}, got {given}"
     if high is not None:
-        wording = "less than" if getattr(param_type, "max_open", False) else "at most"
-        return f"must be {wording} {high:g}, got {given}"
+        return f"must be {'less than' if high_open else 'at most'} {high:g}, got {given}"
     return message.rstrip(".")
 
 
@@ -238,11 +237,11 @@ def run(argv: list[str]) -> int:
                 print(err.format_message(), file=sys.stderr)
                 return 2
             if getattr(err, "exit_code", 1) == 2:
-                return _fail(f"{usage_error_line(err).rstrip('.')} (see --help)", 2)
+                return _usage_fail(usage_error_line(err))
             return _fail(" ".join(err.format_message().split()), getattr(err, "exit_code", 1))
         except EscapeError as err:
             if err.exit_code == 2:  # a usage error, like click's
-                return _fail(f"{str(err).rstrip('.')} (see --help)", 2)
+                return _usage_fail(str(err))
             return _fail(str(err), err.exit_code)
         except MemoryError:
             return _fail("out of memory (a smaller cloud, or fewer --points, may fit)", 1)
@@ -270,6 +269,11 @@ def _invoke(argv: list[str]) -> int:
     except typer.Exit as exit_:  # --help, --version
         return exit_.exit_code
     return result if isinstance(result, int) else 0
+
+
+def _usage_fail(message: str) -> int:
+    """A usage error: its one line points at --help; exit code 2."""
+    return _fail(f"{message.rstrip('.')} (see --help)", 2)
 
 
 def _fail(message: str, code: int, prefix: str = "escape: error: ") -> int:
