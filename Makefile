@@ -14,7 +14,7 @@ comma := ,
 
 install: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml setup.py src/escape_cli/core/_kernels.c
 	bash scripts/install_system_deps.sh $(subst $(comma), ,$(EXTRAS))
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip

@@ -8,6 +8,7 @@ machine changes both alike:
   alternately with them, medians of `--repeats`);
 - farthest point sampling against its naive loop (`farthest_point_sampling_naive`) on the
   scan and on denser copies of it (a few thousand to 100k points down to 2048);
+- the neighbour queries (`core.neighbours`, the compiled grid) against scipy's cKDTree;
 - the cold `escape complete one.pcd` process against a process that only imports numpy,
   scipy.spatial and onnxruntime (alternately, medians);
 - `complete_many` over `--scans` scans against a loop of `complete` over the same scans.
@@ -121,6 +122,20 @@ def fps(cloud: np.ndarray, rng: np.random.Generator, sizes) -> None:
         print(f"{label:32s} {1000 * t_slow:10.1f} {1000 * t_fast:10.1f} {t_slow / t_fast:8.1f}x  {np.array_equal(slow, fast)}")
 
 
+def neighbours(cloud: np.ndarray, rng: np.random.Generator, repeats: int) -> None:
+    """The neighbour queries of `complete` (anchors' curvature, the snap) against scipy's cKDTree."""
+    from scipy.spatial import cKDTree
+
+    from escape_cli.core.neighbours import NeighbourIndex
+
+    completion = cloud[rng.integers(0, len(cloud), 16384)] + rng.normal(scale=0.05, size=(16384, 3))
+    print(f"\n{'nearest neighbours (build + query)':40s} {'cKDTree ms':>10s} {'kernel ms':>10s} {'speed-up':>9s}  same distances")
+    for label, queries, k in ((f"{len(cloud)} points, 24 of each", cloud, 24), ("16384 completion points, 10 each", completion, 10)):
+        t = alternate({"tree": lambda: cKDTree(cloud).query(queries, k=k), "kernel": lambda: NeighbourIndex(cloud).query(queries, k)}, repeats)
+        same = np.array_equal(cKDTree(cloud).query(queries, k=k)[0], NeighbourIndex(cloud).query(queries, k)[0])
+        print(f"{label:40s} {1000 * t['tree']:10.1f} {1000 * t['kernel']:10.1f} {t['tree'] / t['kernel']:8.1f}x  {same}")
+
+
 def cold(scan: str, model: str | None, repeats: int) -> None:
     escape = str(Path(sys.executable).parent / "escape")
     with tempfile.TemporaryDirectory() as tmp:
@@ -179,6 +194,7 @@ def main() -> None:
           f"({net.output_points} outputs); python {sys.version.split()[0]}, numpy {np.__version__}")
     stages(cloud, net, args.repeats)
     fps(cloud, rng, [None] + [int(s) for s in args.fps_sizes.split(",") if s])
+    neighbours(cloud, rng, args.repeats)
     cold(args.input, args.model, max(3, args.repeats // 2))
     if args.scans:
         throughput(cloud, net, args.scans, args.batch_size, rng)

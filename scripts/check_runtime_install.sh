@@ -16,17 +16,20 @@ fail() { echo "check-install: FAILED: $*" >&2; exit 1; }
 
 # 1. the wheel, built from a copy of the sources (the checkout stays clean)
 mkdir -p "$work/src"
-cp pyproject.toml README.md LICENSE "$work/src/"
+cp pyproject.toml setup.py README.md LICENSE "$work/src/"
 cp -r src "$work/src/src"
 find "$work/src" -name __pycache__ -prune -exec rm -rf {} +
+find "$work/src" -name "*.so" -delete  # the editable install's build of the kernels: the wheel builds its own
 "$PYTHON" -m venv "$work/build-env"
 "$work/build-env/bin/pip" install --quiet --upgrade pip
 "$work/build-env/bin/pip" wheel --quiet --no-deps -w "$work/dist" "$work/src"
 wheel=$(ls "$work"/dist/escape_cli-*.whl)
-"$PYTHON" - "$wheel" <<'EOF' || fail "the wheel lacks the model"
+"$PYTHON" - "$wheel" <<'EOF' || fail "the wheel lacks the model or the compiled kernels"
 import sys, zipfile
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
 missing = [n for n in ("escape_cli/models/escape-small.onnx", "escape_cli/models/escape-small.json") if n not in names]
+if not any(n.startswith("escape_cli/core/_kernels") and n.endswith((".so", ".pyd")) for n in names):
+    missing.append("escape_cli/core/_kernels (the compiled kernels: is a C compiler installed?)")
 sys.exit(f"missing from the wheel: {missing}" if missing else 0)
 EOF
 say "wheel $(basename "$wheel"): $(du -h "$wheel" | cut -f1)"
@@ -46,6 +49,7 @@ for module in torch open3d h5py; do
     fi
 done
 say "import torch / open3d / h5py fail, as they should"
+"$bin/python" -c "from escape_cli.core import _kernels" || fail "the compiled kernels do not import"
 
 # 4. it completes a scan with the model shipped in the package, run from outside the checkout
 out="$work/out"

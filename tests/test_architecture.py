@@ -29,7 +29,7 @@ LAYERS = {
 }
 FACADE = "escape_cli"  # the package's __init__: re-exports `complete` (lazily)
 CORE_ALLOWED = {"numpy", "scipy", "__future__", "dataclasses", "math", "numbers", "itertools", "typing", "functools",
-                "concurrent"}  # concurrent.futures: threads for independent batches (reconstruction)
+                "concurrent", "threading"}  # core/threads.py: one shared pool for independent batches (solver, neighbours)
 
 
 def module_name(path: Path) -> str:

@@ -71,7 +71,7 @@ def test_library_completion_imports_no_cli_and_only_what_it_needs(tiny_model):
         f"cloud = read_points({str(scan)!r})\n"
         f"complete(cloud, {str(tiny_model)!r}, output_points=500)\n"
         f"complete_many([cloud, cloud], {str(tiny_model)!r}, output_points=500)\n"
-        "unwanted = ('typer', 'click', 'rich', 'pydantic', 'torch', 'open3d', 'scipy.optimize', 'matplotlib')\n"
+        "unwanted = ('typer', 'click', 'rich', 'pydantic', 'torch', 'open3d', 'scipy.optimize', 'scipy.spatial', 'matplotlib')\n"
         "print([m for m in unwanted if m in sys.modules])\n"
     )
     assert res.returncode == 0, res.stderr

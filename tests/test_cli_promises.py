@@ -296,7 +296,9 @@ def test_python_warnings_are_debug_lines(scan, monkeypatch):
     assert any(line.startswith("escape: DEBUG: RuntimeWarning: overflow encountered") for line in loud.stderr_lines), loud.stderr
 
 
-def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch):
+def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch, tmp_path):
+    model = tmp_path / "model.onnx"
+    model.write_bytes(b"not checked: no metadata gives a checksum")
     calls = []
     fake = types.SimpleNamespace(
         set_default_logger_severity=lambda level: calls.append(("severity", level)),
@@ -306,8 +308,8 @@ def test_onnxruntime_logger_is_silenced_before_the_session(monkeypatch):
     monkeypatch.setitem(sys.modules, "onnxruntime", fake)
     from escape_cli.inference import _session
 
-    assert _session("model.onnx", 0) == "session"
-    assert calls == [("severity", 3), ("session", "model.onnx")]
+    assert _session(str(model), 0) == "session"
+    assert calls == [("severity", 3), ("session", model.read_bytes())]  # the bytes read (and checked) once
 
 
 # ------------------------------------------------------------------ closed pipes

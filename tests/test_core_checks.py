@@ -17,6 +17,7 @@ from escape_cli.core import (
     reconstruction,
     rotations,
     sampling,
+    neighbours,
     snap,
 )
 from escape_cli.core.checks import MAX_MAGNITUDE, as_points, as_rows
@@ -53,6 +54,8 @@ CALLS = {
     reconstruction.rms_residuals: ((CLOUD[:20], DISTANCES, ANCHORS), [0, 1, 2]),
     reconstruction.reconstruct: ((DISTANCES, ANCHORS), [0, 1]),
     snap.snap_to_scan: ((CLOUD[:20], CLOUD), [0, 1]),
+    neighbours.NeighbourIndex: ((CLOUD,), [0]),
+    neighbours.NeighbourIndex(CLOUD).query: ((CLOUD[:20], 4), [0]),
     normalize.cloud_radius: ((CLOUD,), [0]),
     normalize.cloud_radius_naive: ((CLOUD,), [0]),
     normalize.fit_normalization: ((CLOUD, 0.3), [0]),
@@ -88,6 +91,7 @@ NO_ARRAYS = {
     "anchors": {"Anchors", "AnchorSettings"},
     "reconstruction": {"Reconstruction"},
     "normalize": {"Normalization", "BoxNormalization", "box_normalization", "PartialFrame", "NetworkInput"},
+    "threads": {"thread_map"},
 }
 
 

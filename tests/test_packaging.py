@@ -79,9 +79,9 @@ def _can_build_without_isolation() -> bool:
 def test_the_wheel_contains_the_model(tmp_path):
     source = tmp_path / "source"
     source.mkdir()
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
+    for name in ("pyproject.toml", "setup.py", "README.md", "LICENSE"):
         shutil.copy(REPO / name, source / name)
-    shutil.copytree(REPO / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    shutil.copytree(REPO / "src", source / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info", "*.so"))
     built = subprocess.run(
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path / "dist"),
          str(source)], capture_output=True, text=True, timeout=600,
@@ -92,6 +92,7 @@ def test_the_wheel_contains_the_model(tmp_path):
     for name in MODEL_FILES:
         assert f"escape_cli/{name}" in names
     assert "escape_cli/py.typed" in names
+    assert any(n.startswith("escape_cli/core/_kernels") and n.endswith((".so", ".pyd")) for n in names)  # compiled here
     assert wheel.stat().st_size < 50e6
     metadata = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     unconditional = {requirement_name(line.split(":", 1)[1].strip()) for line in metadata.splitlines()

@@ -1,14 +1,15 @@
-"""Farthest point sampling: the fast path equals the naive loop, index for index, and is equivariant."""
+"""Farthest point sampling: both fast paths (compiled and numpy) equal the naive loop, index for index, and are equivariant."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from escape_cli.core import sampling
 from escape_cli.core.rotations import random_rotation
 from escape_cli.core.sampling import farthest_point_sampling, farthest_point_sampling_naive
 from escape_cli.errors import DegenerateGeometryError
-from tests_support import partial_cloud
+from tests_support import kernel_or_fallback, partial_cloud
 
 
 def lattice(n_side: int, spacing: float = 0.1) -> np.ndarray:
@@ -36,22 +37,28 @@ def clouds():
     }
 
 
+@pytest.fixture(params=["compiled", "numpy"])
+def fast_path(request, monkeypatch):
+    """Every test runs on the compiled kernel and on the numpy path (the kernel hidden)."""
+    return kernel_or_fallback(request, monkeypatch, sampling, "numpy")
+
+
 @pytest.mark.parametrize("name", list(clouds()))
-def test_fast_fps_equals_naive(name):
+def test_fast_fps_equals_naive(name, fast_path):
     cloud, count = clouds()[name]
     fast = farthest_point_sampling(cloud, count)
     assert fast.dtype == np.int64 and fast.shape == (count,)
     assert np.array_equal(fast, farthest_point_sampling_naive(cloud, count))
 
 
-def test_fast_fps_equals_naive_from_a_given_start():
+def test_fast_fps_equals_naive_from_a_given_start(fast_path):
     cloud, _ = clouds()["sphere"]
     for start in (0, 17, len(cloud) - 1):
         assert np.array_equal(farthest_point_sampling(cloud, 700, start=start),
                               farthest_point_sampling_naive(cloud, 700, start=start))
 
 
-def test_fast_fps_raises_like_naive_when_points_run_out():
+def test_fast_fps_raises_like_naive_when_points_run_out(fast_path):
     rng = np.random.default_rng(2)
     few = rng.normal(size=(300, 3))
     cloud = few[rng.integers(0, 300, size=1200)]  # 300 distinct points (at most), each repeated
@@ -66,7 +73,7 @@ def test_fast_fps_raises_like_naive_when_points_run_out():
 
 
 @pytest.mark.parametrize("name", ["sphere", "partial scan"])
-def test_fast_fps_is_equivariant(name):
+def test_fast_fps_is_equivariant(name, fast_path):
     cloud, count = clouds()[name]
     rng = np.random.default_rng(8)
     base = farthest_point_sampling(cloud, count)

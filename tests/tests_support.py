@@ -75,3 +75,14 @@ def write_tiny_pcn_tree(root, seed: int = 0, objects: int = 2, views: int = 2, c
                 made.setdefault(split, []).append((synset, model_id))
     write_split_file(root, ids)
     return made
+
+
+def kernel_or_fallback(request, monkeypatch, module, fallback: str) -> str:
+    """Body of a fixture with params ["compiled", fallback]: the compiled kernels, or `module` without them.
+
+    Fails when the kernels were not built: the tests insist on them (setup.py needs a C compiler).
+    """
+    assert module._kernels is not None, "escape_cli.core._kernels was not built (setup.py needs a C compiler)"
+    if request.param == fallback:
+        monkeypatch.setattr(module, "_kernels", None)
+    return request.param

@@ -40,15 +40,14 @@ def default_model_path() -> Path:
 class CompletionModel:
     """An exported network: (B, N, K) partial distances -> (B, M, K) complete distances.
 
-    The metadata and checksum are read at once; the onnxruntime session is built (or
-    joined, when `preload_model` started it) on construction and waited for on first
-    use, so a caller can prepare its input meanwhile.
+    The metadata is read at once; the session (the file read once, its checksum checked,
+    then built by onnxruntime) is built on construction, or joined when `preload_model`
+    started it, and waited for on first use, so a caller can prepare its input meanwhile.
     """
 
     def __init__(self, path: Path, threads: int = 0):
         self.path = Path(path)
         self.meta = read_metadata(self.path)
-        self._verify_checksum()
         self._session = _session_loading(str(self.path), threads, background=False)
         if self.failed:  # built here and refused: say so now
             self._session.result()
@@ -119,17 +118,6 @@ class CompletionModel:
             return self.session.run([self.output_name], {self.input_name: x})[0]
         except Exception as err:
             raise ModelError(f"running {self.path.name} failed: {err}") from None
-
-    def _verify_checksum(self) -> None:
-        want = self.meta.get("sha256")
-        if not want:
-            return
-        digest = hashlib.sha256()
-        with open(self.path, "rb") as fh:
-            for chunk in iter(lambda: fh.read(1 << 20), b""):
-                digest.update(chunk)
-        if digest.hexdigest() != want:
-            raise ModelError(f"{self.path} is corrupt: its checksum does not match {self.path.with_suffix('.json').name}")
 
 
 def read_metadata(path: Path) -> dict:
@@ -208,7 +196,12 @@ def quiet_onnxruntime(ort=None) -> None:
 
 
 def _session(path: str, threads: int):
-    """A new onnxruntime session of `path` (ModelError when onnxruntime refuses the file)."""
+    """A new onnxruntime session of `path`, its checksum checked (ModelError when corrupt or refused).
+
+    The file is read once, for the checksum and for onnxruntime; both run without the
+    interpreter lock, so in a background thread they overlap the caller's imports.
+    """
+    data = _read_model_bytes(Path(path))
     import onnxruntime as ort
 
     quiet_onnxruntime(ort)
@@ -219,16 +212,32 @@ def _session(path: str, threads: int):
     if not SPINNING:
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
-        return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(data, options, providers=["CPUExecutionProvider"])
     except Exception as err:
         raise ModelError(f"cannot load model {path}: {str(err).splitlines()[0]}") from None
+
+
+def _read_model_bytes(path: Path) -> bytes:
+    """The model file's bytes, checked against the sha256 its metadata records (if any)."""
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise ModelError(f"model file {path} cannot be read: {err.strerror or err}") from None
+    try:  # read_metadata reports a missing or broken .json; here it only supplies the checksum
+        want = json.loads(path.with_suffix(".json").read_bytes()).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        want = None
+    if want and hashlib.sha256(data).hexdigest() != want:
+        raise ModelError(f"{path} is corrupt: its checksum does not match {path.with_suffix('.json').name}")
+    return data
 
 
 def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
     """Load (and cache) a model; None means the default model.
 
-    Returns once the metadata and checksum are checked; the session is waited for when
-    it is first used (`CompletionModel.session`). A session load already under way
+    Returns once the metadata is checked and the session is built, or, when a load is
+    under way (`preload_model`), joins it: it is then waited for when first used
+    (`CompletionModel.session`), and a corrupt file is reported there. A session load already under way
     (`preload_model`) is joined, not repeated. Failed loads are not cached.
     """
     model_path = Path(path) if path else default_model_path()
@@ -248,9 +257,9 @@ def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
 def preload_model(path: str | None = None, threads: int = 0) -> Future:
     """Start building the session of `load_model(path, threads)` in a background thread; return at once.
 
-    onnxruntime builds the session without holding the interpreter lock, so a command
-    that knows it will need the model can import numpy and scipy and read and prepare
-    its input meanwhile; `load_model` with the same arguments joins this load. Wait for
+    onnxruntime is imported here (with numpy); the file is read and checked and the
+    session built without holding the interpreter lock, so a command that knows it
+    will need the model can import scipy and read and prepare its input meanwhile; `load_model` with the same arguments joins this load. Wait for
     the returned future before the process exits. Errors (a missing model, a file
     onnxruntime refuses) are left in the future: `load_model` reports them.
     """
@@ -286,6 +295,10 @@ def _session_loading(path: str, threads: int, background: bool) -> Future:
             future.set_exception(err)
 
     if background:
+        # Imported here, not in the thread: numpy's import (which onnxruntime's brings in) fails
+        # when another thread imports numpy at the same time.
+        import onnxruntime  # noqa: F401
+
         threading.Thread(target=build, name="escape-model-load", daemon=True).start()
     else:
         build()

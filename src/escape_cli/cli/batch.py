@@ -121,9 +121,9 @@ def parse_shard(text: str | None) -> tuple[int, int] | None:
 def check_model(model: str | None, threads: int, wait: bool = True) -> None:
     """Load the model (cached) so that a missing, misplaced or broken one is reported before any work.
 
-    The metadata and checksum are always checked here; with `wait` False the session is
-    left building (one scan: it is prepared meanwhile, and a file onnxruntime refuses is
-    reported before anything is written).
+    The metadata is always checked here; with `wait` False the session (checksum
+    included) is left building: one scan is prepared meanwhile, and a corrupt model or
+    a file onnxruntime refuses is reported before anything is written.
     """
     from escape_cli.inference import load_model
 

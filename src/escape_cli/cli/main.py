@@ -26,6 +26,7 @@ from typing import Callable, Optional
 import typer
 
 from escape_cli.version import __version__
+from escape_cli.cli.argv import GLOBAL_OPTIONS
 from escape_cli.cli import (
     cmd_anchors,
     cmd_average_checkpoints,
@@ -97,7 +98,6 @@ app.command("render")(_guarded(cmd_render.command))
 app.add_typer(cmd_dataset.app, name="dataset")
 
 
-GLOBAL_OPTIONS = ("-q", "--quiet", "-v", "-vv", "-vvv", "--verbose", "--version")
 
 # Errors of the machine rather than of escape or its input: one line, exit code 1.
 ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}

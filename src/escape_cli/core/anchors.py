@@ -21,6 +21,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points, check_not_collinear
 from escape_cli.core.curvature import surface_variation
+from escape_cli.core.neighbours import NeighbourIndex
 from escape_cli.core.sampling import count_distinct, farthest_point_sampling
 from escape_cli.core.settings import DEFAULTS, METHODS, AnchorSettings
 from escape_cli.errors import DegenerateGeometryError
@@ -63,7 +64,7 @@ def select_anchors(
     method : "ball", "fps" or "cluster".
     radius : search radius of the "ball" refinement, in the cloud's units.
     knn : neighbourhood size of the curvature estimate.
-    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
+    tree : a `NeighbourIndex` of `points` already built (reused), or None.
 
     Returns
     -------
@@ -81,9 +82,7 @@ def select_anchors(
         chosen = seeds
     else:
         if tree is None:
-            from scipy.spatial import cKDTree
-
-            tree = cKDTree(pts)
+            tree = NeighbourIndex(pts)
         curvature = surface_variation(pts, knn, tree=tree)  # (N,)
         centroid_dist = np.linalg.norm(pts - pts.mean(axis=0), axis=1)  # (N,)
         if method == "ball":

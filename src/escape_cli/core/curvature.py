@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from escape_cli.core.checks import as_points
+from escape_cli.core.neighbours import NeighbourIndex
 from escape_cli.core.params import as_count
 
 # Neighbours whose distance is within this relative tolerance of the k-th one are all
@@ -19,7 +20,7 @@ def tie_stable_neighbours(points: np.ndarray, k: int, *, tree=None) -> tuple[np.
     ----------
     points : (N, 3) float64
     k : neighbours per point, the point itself included.
-    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
+    tree : a `NeighbourIndex` of `points` already built (reused), or None.
 
     Returns
     -------
@@ -31,12 +32,8 @@ def tie_stable_neighbours(points: np.ndarray, k: int, *, tree=None) -> tuple[np.
     k = min(as_count(k, "k (neighbours)", minimum=1), n)
     extra = min(n, k + 8)
     if tree is None:
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(points)
-    dist, idx = tree.query(points, k=extra)  # (N, L)
-    dist = dist.reshape(n, extra)
-    idx = idx.reshape(n, extra)
+        tree = NeighbourIndex(points)
+    dist, idx = tree.query(points, extra)  # (N, L)
     kth = dist[:, k - 1 : k]  # (N, 1)
     mask = dist <= kth * (1.0 + NEIGHBOUR_TIE_RTOL) + 1e-15
     idx = np.where(mask, idx, np.arange(n)[:, None])
@@ -54,7 +51,7 @@ def surface_variation(points, k: int = 16, *, tree=None) -> np.ndarray:
     ----------
     points : (N, 3) float64
     k : neighbourhood size (the point itself included).
-    tree : a ``scipy.spatial.cKDTree`` of `points` already built (reused), or None.
+    tree : a `NeighbourIndex` of `points` already built (reused), or None.
 
     Returns
     -------

@@ -54,6 +54,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points, as_rows, check_not_collinear
 from escape_cli.core.params import as_choice, as_count, as_number
+from escape_cli.core.threads import thread_map
 from escape_cli.errors import DegenerateGeometryError, ParameterError, PointCloudError
 
 __all__ = [
@@ -574,14 +575,7 @@ def _lm_batched(q0: np.ndarray, d: np.ndarray, frame: _Frame, max_iter: int, new
                        np.full(hi - lo, _LAMBDA0), np.full(hi - lo, max_iter))
         return lm.run(batch, until=(hi - lo) // _LM_TAIL)
 
-    starts = range(0, len(q0), _LM_BATCH)
-    if workers > 1 and len(starts) > 1:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(min(workers, len(starts))) as pool:
-            tails = list(pool.map(bulk, starts))
-    else:
-        tails = [bulk(lo) for lo in starts]
+    tails = thread_map(bulk, range(0, len(q0), _LM_BATCH), workers)
     if tails:
         lm.run(_Batch(*(np.concatenate(parts, axis=-1) for parts in zip(*tails))), until=0)
     return lm.q.T.copy(), lm.cost, int(lm.used.max(initial=0))

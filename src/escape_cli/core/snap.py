@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from escape_cli.core.checks import as_points
+from escape_cli.core.neighbours import NeighbourIndex
 from escape_cli.core.params import as_count, as_number
 
 __all__ = ["SNAP_RADIUS", "SNAP_NEIGHBOURS", "Snap", "check_snap_radius", "snap_to_scan"]
@@ -58,7 +59,7 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     scan : (N, 3) observed points in the same frame.
     radius : fade length of the pull; 0 turns snapping off.
     neighbours : scan points per fitted plane (at least 3).
-    tree : a ``scipy.spatial.cKDTree`` of `scan` already built (reused), or None.
+    tree : a `NeighbourIndex` of `scan` already built (reused), or None.
     workers : threads of the neighbour query (the same result with any number).
 
     Returns
@@ -74,16 +75,14 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
         return unmoved
 
     if tree is None:
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(ref)
+        tree = NeighbourIndex(ref)
     workers = as_count(workers, "workers", minimum=1)
-    dist, rows = tree.query(pts, k=min(neighbours, len(ref)), workers=workers)  # (M, k), nearest first
-    gap = dist[:, 0]  # (M,)
-    near = np.flatnonzero(gap < 2.0 * radius)
+    nearest, _ = tree.query(pts, 1, workers=workers, limit=2.0 * radius)  # (M, 1); inf beyond the reach
+    near = np.flatnonzero(nearest[:, 0] < 2.0 * radius)
     if len(near) == 0:
         return unmoved
-    nbr = rows[near]  # (P, k) scan rows of each patch
+    dist, nbr = tree.query(pts[near], min(neighbours, len(ref)), workers=workers)  # (P, k) scan rows of each patch, nearest first
+    gap = dist[:, 0]  # (P,)
     xs, ys, zs = (ref[:, c][nbr] for c in range(3))  # (P, k) each
     k = nbr.shape[1]
     centre = np.stack([np.einsum("pk->p", xs), np.einsum("pk->p", ys), np.einsum("pk->p", zs)], axis=1) / k  # (P, 3)
@@ -97,7 +96,7 @@ def snap_to_scan(points, scan, radius: float = SNAP_RADIUS, neighbours: int = SN
     spread = variance[:, 2]
     is_surface = (spread > 0) & (variance[:, 1] > LINE_RATIO * spread) & (variance[:, 0] <= FLAT_RATIO * variance[:, 1])
     height = np.einsum("pi,pi->p", pts[near] - centre, normal)  # (P,)
-    weight = np.exp(-((gap[near] / radius) ** 2)) * is_surface  # (P,)
+    weight = np.exp(-((gap / radius) ** 2)) * is_surface  # (P,)
 
     out = pts.copy()
     out[near] -= np.where(is_surface, weight * height, 0.0)[:, None] * normal
