@@ -237,8 +237,8 @@ def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
 
     Returns once the metadata is checked and the session is built, or, when a load is
     under way (`preload_model`), joins it: it is then waited for when first used
-    (`CompletionModel.session`), and a corrupt file is reported there. A session load already under way
-    (`preload_model`) is joined, not repeated. Failed loads are not cached.
+    (`CompletionModel.session`), and a corrupt file is reported there; a load under way
+    is joined, not repeated. Failed loads are not cached.
     """
     model_path = Path(path) if path else default_model_path()
     key = (str(model_path), threads)
@@ -259,8 +259,9 @@ def preload_model(path: str | None = None, threads: int = 0) -> Future:
 
     onnxruntime is imported here (with numpy); the file is read and checked and the
     session built without holding the interpreter lock, so a command that knows it
-    will need the model can import scipy and read and prepare its input meanwhile; `load_model` with the same arguments joins this load. Wait for
-    the returned future before the process exits. Errors (a missing model, a file
+    will need the model can import the rest and read and prepare its input meanwhile;
+    `load_model` with the same arguments joins this load. Wait for the returned future
+    before the process exits. Errors (a missing model, a file
     onnxruntime refuses) are left in the future: `load_model` reports them.
     """
     try:

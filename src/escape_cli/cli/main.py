@@ -98,7 +98,6 @@ app.command("render")(_guarded(cmd_render.command))
 app.add_typer(cmd_dataset.app, name="dataset")
 
 
-
 # Errors of the machine rather than of escape or its input: one line, exit code 1.
 ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EIO, errno.EROFS}
 

@@ -222,7 +222,7 @@ static Py_ssize_t cell_coord(double v, double origin, double cell) {
     return (Py_ssize_t)c;
 }
 
-static int grid_build(Grid *g, const double *ref, Py_ssize_t m, Py_ssize_t k) {
+static int grid_build(Grid *g, const double *ref, Py_ssize_t m) {
     double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
     for (Py_ssize_t i = 0; i < m; i++)
         for (int a = 0; a < 3; a++) {
@@ -232,8 +232,7 @@ static int grid_build(Grid *g, const double *ref, Py_ssize_t m, Py_ssize_t k) {
     double extent = 0.0;
     for (int a = 0; a < 3; a++)
         if (hi[a] - lo[a] > extent) extent = hi[a] - lo[a];
-    /* about one cell per point along the largest side's cube root, at least k points a cell
-       on a surface: cells of side extent / cbrt(m / 2), at most 128 a side */
+    /* cells of side extent / cbrt(m / 2), at most 128 a side: a few points a cell on a surface */
     double per_side = cbrt((double)m / 2.0);
     if (per_side > 128.0) per_side = 128.0;
     if (per_side < 1.0) per_side = 1.0;
@@ -245,7 +244,6 @@ static int grid_build(Grid *g, const double *ref, Py_ssize_t m, Py_ssize_t k) {
         g->dims[a] = d < 1 ? 1 : d;
         cells *= g->dims[a];
     }
-    (void)k;
     g->ref = ref;
     g->m = m;
     g->start = calloc(cells + 1, sizeof(Py_ssize_t));
@@ -392,7 +390,7 @@ static PyObject *knn(PyObject *self, PyObject *args) {
     int failed;
     Py_BEGIN_ALLOW_THREADS
     double limit2 = limit < INFINITY ? limit * limit : INFINITY;
-    failed = grid_build(&g, ref.buf, m, k);
+    failed = grid_build(&g, ref.buf, m);
     if (!failed) {
         double *dist = out_dist.buf;
         int64_t *index = out_index.buf;

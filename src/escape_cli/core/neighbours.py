@@ -41,9 +41,6 @@ class NeighbourIndex:
 
             self._tree = cKDTree(self.points)
 
-    def __len__(self) -> int:
-        return len(self.points)
-
     def query(self, queries, k: int, workers: int = 1, limit: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """The k nearest points of each query, nearest first.
 
@@ -79,7 +76,6 @@ class NeighbourIndex:
         x = np.asarray(x, dtype=np.float64).reshape(3)
         d = self.points - x  # (M, 3)
         return np.flatnonzero(((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2]) <= radius * radius)
-
 
 
 def _upper_bound(limit: float) -> float:

@@ -74,11 +74,9 @@ def _fps_compiled(pts: np.ndarray, count: int, start: int | None) -> np.ndarray:
     n = len(pts)
     radius = np.linalg.norm(pts - pts.mean(axis=0), axis=1)  # (N,) the tie-break, as the naive loop
     first = farthest_from_centroid(pts) if start is None else int(start)
-    curve = _morton_order(pts)  # (N,)
-    slots = -(-n // _BLOCK) * _BLOCK
-    order = np.concatenate([curve, np.full(slots - n, curve[-1])]).astype(np.int64)  # (S,) slot -> point
+    order = _slot_order(pts, _BLOCK)  # (S,)
     where = np.empty(n, dtype=np.int64)
-    where[curve] = np.arange(n)
+    where[order[:n]] = np.arange(n)
     chosen = np.empty(count, dtype=np.int64)
     made = _kernels.fps(np.ascontiguousarray(pts[order]), order, radius, n, int(where[first]), chosen)
     if made < count:
@@ -159,6 +157,13 @@ def _morton_order(pts: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
+def _slot_order(pts: np.ndarray, multiple: int) -> np.ndarray:
+    """(S,) int64 slot -> point: the Morton order, padded to a multiple of `multiple` by repeating its last point."""
+    curve = _morton_order(pts)  # (N,)
+    slots = -(-len(pts) // multiple) * multiple
+    return np.concatenate([curve, np.full(slots - len(pts), curve[-1])]).astype(np.int64)
+
+
 def _spheres(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounding spheres of rows of points: centres (R, 3) and radii (R,)."""
     centre = np.stack([x.mean(axis=1), y.mean(axis=1), z.mean(axis=1)], axis=1)  # (R, 3)
@@ -179,9 +184,8 @@ def _fps_blocked(pts: np.ndarray, count: int, start: int | None) -> np.ndarray:
     first = farthest_from_centroid(pts) if start is None else int(start)
 
     span = _BLOCK * _GROUP
-    slots = -(-n // span) * span
-    curve = _morton_order(pts)  # (N,)
-    order = np.concatenate([curve, np.full(slots - n, curve[-1])])  # (S,) slot -> point
+    order = _slot_order(pts, span)  # (S,)
+    slots = len(order)
     blocks = slots // _BLOCK
     coords = pts[order]  # (S, 3); pads repeat the curve's last point, with distance -1: never chosen
     xs, ys, zs = (np.ascontiguousarray(coords[:, c]) for c in range(3))  # (S,) each
