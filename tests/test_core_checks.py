@@ -43,6 +43,7 @@ CALLS = {
     sampling.thin_by_radius: ((CLOUD, 50), [0]),
     sampling.first_unique_rows: ((DISTANCES, 8), [0]),
     sampling.prepare_input: ((CLOUD, 64), [0]),
+    sampling.select_confident_rows: ((np.abs(CLOUD[:, 0]), 150), [0]),
     curvature.tie_stable_neighbours: ((CLOUD, 8), [0]),
     curvature.surface_variation: ((CLOUD, 8), [0]),
     anchors.select_anchors: ((CLOUD,), [0]),

@@ -46,3 +46,13 @@ def test_sparse_scans_drop_the_copies_their_repeated_rows_make(tiny_model, rng):
     """A 40-point scan fills the network's 256 rows by repetition; identical queries give identical points."""
     out = complete(partial_cloud(rng, 40), tiny_model, output_points=100_000)
     assert len(np.unique(out.points, axis=0)) == len(out.points) == out.available
+
+
+def test_the_surplus_left_out_is_the_least_certain_part(tiny_model, rng):
+    cloud = partial_cloud(rng, 3000)
+    full = complete(cloud, tiny_model, output_points=100_000)
+    kept = complete(cloud, tiny_model, output_points=full.available - 200)
+    assert len(kept.points) == full.available - 200
+    assert kept.is_observed.sum() == full.is_observed.sum()  # every observed point stays
+    predicted = ~full.is_observed
+    assert kept.residuals[~kept.is_observed].mean() < full.residuals[predicted].mean()

@@ -134,3 +134,43 @@ def test_prepare_input_thins_huge_clouds_equivariantly(rng, monkeypatch):
     r, t = random_rotation(rng), rng.normal(size=3)
     moved, _ = sampling.prepare_input((cloud @ r.T + t)[rng.permutation(len(cloud))], 2048)
     np.testing.assert_allclose(moved, prepared @ r.T + t, atol=1e-9)
+
+
+# ---------------------------------------------------------------- keeping the confident points
+
+
+def test_select_confident_rows_keeps_distinct_rows_in_order_and_is_repeatable():
+    residuals = np.random.default_rng(0).random(500)
+    rows = sampling.select_confident_rows(residuals, 420)
+    assert rows.shape == (420,) and len(np.unique(rows)) == 420 and np.all(np.diff(rows) > 0)
+    assert np.array_equal(rows, sampling.select_confident_rows(residuals, 420))
+    assert np.array_equal(sampling.select_confident_rows(residuals, 500), np.arange(500))
+
+
+def test_select_confident_rows_leaves_out_the_unsure_points_first():
+    residuals = np.concatenate([np.full(900, 0.01), np.full(100, 1.0), np.zeros(50)])  # sure, unsure, observed
+    rows = sampling.select_confident_rows(residuals, 950)
+    left_out = np.setdiff1d(np.arange(1050), rows)
+    assert np.all(left_out < 1000)  # the observed points (residual 0) all stay
+    assert np.mean(left_out >= 900) > 0.9  # nearly all left-out points are the unsure ones
+    # only when nothing with a residual is left do observed points go, uniformly
+    rows = sampling.select_confident_rows(residuals, 20)
+    assert np.all(rows >= 1000)
+
+
+def test_select_confident_rows_ignores_the_residuals_scale():
+    residuals = np.random.default_rng(1).random(300)
+    rows = sampling.select_confident_rows(residuals, 200)
+    for scale in (1e-3, 7.0, 1e3):
+        assert np.array_equal(sampling.select_confident_rows(residuals * scale, 200), rows)
+
+
+def test_select_confident_rows_refuses_bad_requests():
+    from escape_cli.errors import PointCloudError
+
+    with pytest.raises(PointCloudError):
+        sampling.select_confident_rows(np.ones(10), 11)
+    with pytest.raises(PointCloudError):
+        sampling.select_confident_rows(-np.ones(10), 5)
+    assert np.array_equal(sampling.select_confident_rows(np.zeros(10), 10), np.arange(10))
+    assert len(np.unique(sampling.select_confident_rows(np.zeros(10), 4))) == 4

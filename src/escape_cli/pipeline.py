@@ -16,7 +16,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points
 from escape_cli.core.params import as_choice, as_count
-from escape_cli.core.sampling import count_distinct, first_unique_rows, resample_rows
+from escape_cli.core.sampling import count_distinct, first_unique_rows, select_confident_rows
 from escape_cli.errors import EscapeError, ParameterError, PointCloudError
 
 log = logging.getLogger("escape")
@@ -280,7 +280,7 @@ def _finish(scan: _Scan, predicted: np.ndarray, options: _Options) -> Completion
     if options.output_points > len(out):
         log.warning("the completion has %d distinct points, fewer than the %d asked for; all are returned",
                     len(out), options.output_points)
-    rows = resample_rows(len(out), min(options.output_points, len(out)))  # a subset: never a repeated point
+    rows = select_confident_rows(residuals, min(options.output_points, len(out)))  # a subset: never a repeated point
     norm = net_in.normalization
     return Completion(
         points=norm.invert(out[rows]),

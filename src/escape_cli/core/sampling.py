@@ -489,3 +489,49 @@ def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
         return np.sort(rng.choice(count, size, replace=False))
     extra = rng.choice(count, size - count, replace=size - count > count)
     return np.concatenate([np.arange(count), extra])
+
+
+DROP_POWER = 2.0  # chance of being left out grows as residual ** DROP_POWER (chosen on the validation split)
+
+
+def select_confident_rows(residuals, size: int, seed: int = 0) -> np.ndarray:
+    """Rows keeping `size` of the points, leaving out the surplus at random, the unsure ones first.
+
+    Each left-out point is drawn without replacement with probability proportional to
+    residual ** DROP_POWER (weighted sampling by exponential keys), so points the solver
+    could not fit well are the likeliest to go, while low-residual points of the same
+    region remain; points of residual 0 (the observed ones) go only when nothing else is
+    left, and then uniformly. Depends only on the residuals (rotation invariant; their
+    scale cancels) and a seeded draw, so it commutes with any similarity of the points.
+    On 80 validation shapes it took a completion's CD-L1 x1000 from 13.48 (a uniform
+    draw) to 13.06 (models/README.md).
+
+    Parameters
+    ----------
+    residuals : (M,) float64, >= 0 and finite.
+    size : rows to keep, 1 <= size <= M.
+
+    Returns
+    -------
+    rows : (size,) int64, ascending, distinct.
+    """
+    column = np.expand_dims(residuals, 1) if np.ndim(residuals) == 1 else residuals
+    r = as_rows(column, "residuals", columns=1, min_rows=1, letters="M1")[:, 0]  # (M,)
+    if r.min() < 0:
+        raise PointCloudError("residuals must not be negative")
+    count = len(r)
+    size = as_count(size, "size", minimum=1)
+    if size > count:
+        raise PointCloudError(f"cannot keep {size} of {count} points")
+    if size == count:
+        return np.arange(count)
+    rng = np.random.default_rng(seed)
+    uniform = rng.random(count)  # (M,) in [0, 1)
+    peak = r.max()
+    weight = (r / peak) ** DROP_POWER if peak > 0 else np.zeros(count)  # (M,) in [0, 1]
+    positive = weight > 0
+    key = np.full(count, -np.inf)
+    key[positive] = np.log1p(-uniform[positive]) / weight[positive]  # larger key: left out first
+    # left out first: positive weights by key, then zero weights in random order
+    order = np.lexsort((-uniform, -key, ~positive))
+    return np.sort(order[count - size:])
