@@ -473,8 +473,8 @@ def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
     """Deterministic rows to turn `count` points into `size`: a seeded subset, or all plus repeats.
 
     Depends only on the counts, so it commutes with any rotation of the points. The
-    one resampling rule of the package (the network input, PCN-style fixed-size
-    samples, completions).
+    resampling rule of the network input and of PCN-style fixed-size samples (a
+    completion keeps its points by `select_confident_rows`).
 
     Returns
     -------
@@ -530,8 +530,14 @@ def select_confident_rows(residuals, size: int, seed: int = 0) -> np.ndarray:
     peak = r.max()
     weight = (r / peak) ** DROP_POWER if peak > 0 else np.zeros(count)  # (M,) in [0, 1]
     positive = weight > 0
-    key = np.full(count, -np.inf)
-    key[positive] = np.log1p(-uniform[positive]) / weight[positive]  # larger key: left out first
-    # left out first: positive weights by key, then zero weights in random order
-    order = np.lexsort((-uniform, -key, ~positive))
-    return np.sort(order[count - size:])
+    sure, unsure = np.flatnonzero(~positive), np.flatnonzero(positive)
+    surplus = count - size
+    left_out = np.zeros(count, dtype=bool)
+    if surplus <= len(unsure):  # leave out the largest keys u ** (1 / w), in logs
+        key = np.log1p(-uniform[unsure]) / weight[unsure]
+        left_out[unsure[np.argpartition(-key, surplus - 1)[:surplus]]] = True
+    else:  # every unsure point, then zero-residual points uniformly
+        left_out[unsure] = True
+        rest = surplus - len(unsure)
+        left_out[sure[np.argpartition(-uniform[sure], rest - 1)[:rest]]] = True
+    return np.flatnonzero(~left_out)
