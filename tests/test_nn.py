@@ -73,6 +73,17 @@ def test_loss_matches_brute_force(rng):
     assert chamfer_l1(gt, gt).item() == pytest.approx(0.0, abs=1e-7)
 
 
+def test_recall_weight_weighs_the_truth_to_prediction_half(rng):
+    pred = torch.from_numpy(rng.random((2, 300, 8)).astype(np.float32))
+    gt = torch.from_numpy(rng.random((2, 200, 8)).astype(np.float32))
+    d = torch.cdist(pred, gt)  # (B, P, G)
+    precision = d.min(dim=2).values.mean(dim=1)  # (B,) prediction -> truth
+    recall = d.min(dim=1).values.mean(dim=1)  # (B,) truth -> prediction
+    expected = ((precision + 3.0 * recall) / 4.0).mean()
+    assert chamfer_l1(pred, gt, recall_weight=3.0).item() == pytest.approx(expected.item(), rel=1e-5)
+    assert chamfer_l1(pred, gt, recall_weight=1.0).item() == pytest.approx(chamfer_l1(pred, gt).item(), rel=1e-7)
+
+
 def test_a_few_steps_lower_the_loss(rng):
     torch.manual_seed(0)
     net = EscapeNet(TINY)

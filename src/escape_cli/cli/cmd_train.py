@@ -31,6 +31,7 @@ def command(
     workers: int = typer.Option(2, "--workers", min=1, help="Processes for preparing the data."),
     threads: int = typer.Option(0, "--threads", min=0, max=4096, help="Torch threads (0: default)."),
     xyz_weight: float = typer.Option(0.0, "--xyz-weight", callback=number_check(minimum=0.0), help="Add Chamfer-L1 in xyz after reconstruction, with this weight."),
+    recall_weight: float = typer.Option(1.0, "--recall-weight", callback=number_check(above=0.0), help="Weight of the xyz term's truth-to-prediction half against its prediction-to-truth half (1: symmetric)."),
     init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint or exported .onnx model (new optimizer and schedule)."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", min=1, help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
@@ -64,7 +65,7 @@ def command(
         data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
         device=device, val_every=val_every, val_limit=val_limit, denoise_sigma=denoise,
         categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
-        max_steps=max_steps, xyz_weight=xyz_weight, snapshot_every=snapshot_every, init=str(init) if init else None,
+        max_steps=max_steps, xyz_weight=xyz_weight, recall_weight=recall_weight, snapshot_every=snapshot_every, init=str(init) if init else None,
     )
     trainer = Trainer(options, resume=resume)
     columns = [

@@ -136,6 +136,7 @@ def _metadata(state: dict, onnx_name: str, sha256: str, parity: float) -> dict:
             "train_seconds": round(state.get("elapsed", 0.0), 1),
             "lr": options.get("lr"),
             "xyz_weight": options.get("xyz_weight", 0.0),
+            "recall_weight": options.get("recall_weight", 1.0),
             "initialised_from": lineage,
             "averaged_from": state.get("averaged_from", []),
             "total_steps": state.get("step", 0) + sum(run["steps"] for run in lineage),

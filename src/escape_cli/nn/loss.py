@@ -26,10 +26,11 @@ def _gather(points: torch.Tensor, index: np.ndarray) -> torch.Tensor:
     return torch.gather(points, 1, idx.unsqueeze(-1).expand(-1, -1, points.shape[-1]))
 
 
-def chamfer_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
-    """Chamfer-L1 per batch mean: (mean_p min_g ||p-g|| + mean_g min_p ||g-p||) / 2.
+def chamfer_l1(pred: torch.Tensor, gt: torch.Tensor, recall_weight: float = 1.0) -> torch.Tensor:
+    """Chamfer-L1 per batch mean: (mean_p min_g ||p-g|| + w mean_g min_p ||g-p||) / (1 + w).
 
-    pred : (B, P, K), gt : (B, G, K) -> scalar (mean over the batch)
+    pred : (B, P, K), gt : (B, G, K), recall_weight : w, the weight of the truth ->
+    prediction term (1: the symmetric Chamfer distance) -> scalar (mean over the batch)
     """
     p = pred.detach().cpu().float().numpy()
     g = gt.detach().cpu().float().numpy()
@@ -37,7 +38,7 @@ def chamfer_l1(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:
     to_pred = _gather(pred, nearest_indices(g, p))  # (B, G, K)
     d_pred = (pred - to_gt).norm(dim=-1).mean(dim=1)  # (B,)
     d_gt = (gt - to_pred).norm(dim=-1).mean(dim=1)  # (B,)
-    return ((d_pred + d_gt) / 2).mean()
+    return ((d_pred + recall_weight * d_gt) / (1.0 + recall_weight)).mean()
 
 
 def chamfer_l1_naive(pred: torch.Tensor, gt: torch.Tensor) -> torch.Tensor:

@@ -48,6 +48,7 @@ class TrainOptions:
     include_observed: bool = True  # the input's own rows join the prediction in the loss
     denoise_sigma: float = 0.0  # Gaussian jitter on input points; the target stays clean
     xyz_weight: float = 0.0  # weight of Chamfer-L1 in xyz after reconstruction (0: DMCD only)
+    recall_weight: float = 1.0  # weight of the xyz term's truth -> prediction half (1: symmetric)
     val_every: int = 0  # steps between validations (0: once per epoch)
     val_limit: int = 400
     xyz_val_samples: int = 24
@@ -208,6 +209,7 @@ class Trainer:
         self.lineage = state.get("lineage", []) + [{
             "checkpoint": str(path), "steps": state["step"], "train_seconds": round(state.get("elapsed", 0.0), 1),
             "lr": options.get("lr"), "xyz_weight": options.get("xyz_weight", 0.0),
+            "recall_weight": options.get("recall_weight", 1.0),
         }]
         log.info("initialised from %s (step %d)", path, state["step"])
 
@@ -222,7 +224,7 @@ class Trainer:
         """Chamfer-L1 in xyz of the reconstructed fine output (+ observed points) against the truth."""
         rec = reconstruct_differentiable(fine, anc, pts.detach().cpu().double().numpy())  # (B, P, 3)
         pred = torch.cat([rec, pts], dim=1) if self.opt.include_observed else rec
-        return chamfer_l1(pred, gt)
+        return chamfer_l1(pred, gt, self.opt.recall_weight)
 
     def train_step(self, idx: np.ndarray, rng: np.random.Generator) -> float:
         self.model.train()
