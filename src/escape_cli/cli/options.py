@@ -43,7 +43,7 @@ NORMALIZE_HELP = (
 )
 SNAP_RADIUS = typer.Option(
     None, "--snap-radius", callback=number_check(minimum=0.0),
-    help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.05; 0: off).",
+    help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.08; 0: off).",
 )
 
 

@@ -23,7 +23,7 @@ from escape_cli.core.params import as_count, as_number
 
 __all__ = ["SNAP_RADIUS", "SNAP_NEIGHBOURS", "Snap", "check_snap_radius", "snap_to_scan"]
 
-SNAP_RADIUS = 0.05  # in the network's units (PCN scale: objects span about 1)
+SNAP_RADIUS = 0.08  # in the network's units (PCN scale: objects span about 1)
 SNAP_NEIGHBOURS = 8
 FLAT_RATIO = 0.25  # a surface patch: smallest PCA variance <= FLAT_RATIO * middle one (a cube corner is 0.39)
 LINE_RATIO = 1e-3  # ... and middle variance > LINE_RATIO * largest (not a line)
