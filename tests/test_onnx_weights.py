@@ -36,13 +36,14 @@ def test_onnx_loads_like_a_checkpoint_with_its_lineage(tmp_path):
     net = write_tiny_checkpoint(tmp_path / "tiny.pt", seed=1)
     state = torch.load(tmp_path / "tiny.pt", weights_only=False)
     state.update(step=7, elapsed=12.5, lineage=[{"checkpoint": "a.pt", "steps": 3, "train_seconds": 1.0}])
-    state["options"].update(lr=2e-4, xyz_weight=3.0)
+    state["options"].update(lr=2e-4, xyz_weight=3.0, recall_weight=2.0)
     torch.save(state, tmp_path / "tiny.pt")
     export_onnx(tmp_path / "tiny.pt", tmp_path / "tiny.onnx")
     model, loaded = load_checkpoint_model(tmp_path / "tiny.onnx")
     assert model.config == net.config and not model.training
     assert loaded["step"] == 7 and loaded["elapsed"] == 12.5
     assert loaded["options"]["lr"] == 2e-4 and loaded["options"]["xyz_weight"] == 3.0
+    assert loaded["options"]["recall_weight"] == 2.0
     assert [run["steps"] for run in loaded["lineage"]] == [3]
 
 

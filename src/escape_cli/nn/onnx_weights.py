@@ -123,7 +123,7 @@ def checkpoint_from_onnx(onnx_path: Path) -> tuple[EscapeNet, dict]:
         "elapsed": float(training.get("train_seconds") or 0.0),
         "options": {
             "config": meta.get("config_name"), "lr": training.get("lr"), "xyz_weight": training.get("xyz_weight", 0.0),
-            "data": training.get("data"), "seed": training.get("seed"),
+            "recall_weight": training.get("recall_weight", 1.0), "data": training.get("data"), "seed": training.get("seed"),
         },
         "anchors": meta.get("anchors"),
         "input_radius": meta.get("normalization", {}).get("target_radius"),
