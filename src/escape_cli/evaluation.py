@@ -74,7 +74,8 @@ class PCNEvaluation:
         synsets = sorted({r["synset"] for r in self.records})
         for synset in synsets:
             rows = [r for r in self.records if r["synset"] == synset]
-            categories[CATEGORIES.get(synset, synset)] = {"synset": synset, "count": len(rows), **_aggregate(rows)}
+            name = rows[0].get("category") or CATEGORIES.get(synset, synset)
+            categories[name] = {"synset": synset, "count": len(rows), **_aggregate(rows)}
         average = {}
         if categories:
             keys = next(iter(categories.values())).keys() - {"synset", "count"}

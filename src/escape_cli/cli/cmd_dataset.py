@@ -1,4 +1,4 @@
-"""`escape dataset`: make a PCN-layout training set from procedural shapes, and inspect datasets."""
+"""`escape dataset`: make PCN-layout training sets (procedural shapes, or any collection of shapes) and inspect them."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ app = typer.Typer(help="Make and inspect training datasets (PCN layout).", no_ar
 
 CATEGORIES_OPTION = typer.Option(
     None, "--categories", "-c",
-    help="Categories by name or synset (repeat or comma-separate); default: all 8 PCN categories.",
+    help="Categories by name or taxonomy id (repeat or comma-separate); default: all of the dataset's (PCN: the 8).",
 )
 
 
@@ -92,6 +92,91 @@ def synth(
         typer.echo(json.dumps(metadata))
 
 
+@app.command("from-shapes")
+def from_shapes(
+    sources: List[Path] = typer.Argument(
+        ..., help="Folders (<category>/{train,test}/<file> as ModelNet, <category>/<file>, or flat) and shape files.",
+    ),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (must be empty unless --overwrite)."),
+    category: Optional[str] = typer.Option(
+        None, "--category", help="Category of a flat folder's files and of files given directly (default: their folder's name).",
+    ),
+    val_fraction: float = typer.Option(0.05, "--val-fraction", min=0.0, max=0.99, help="Share of each category's training shapes held out for validation (chosen by a hash of their ids)."),
+    test_fraction: float = typer.Option(0.0, "--test-fraction", min=0.0, max=0.99, help="Share of each category's shapes held out for testing, where the layout has no test split."),
+    seed: int = typer.Option(0, "--seed", min=0, help="Run seed; same seed, byte-identical point files."),
+    views: int = typer.Option(8, "--views", min=1, max=100, help="Partial views per training shape (PCN: 8)."),
+    eval_views: int = typer.Option(1, "--eval-views", min=1, max=100, help="Partial views per val/test shape (PCN: 1)."),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, max=256, help="Worker processes (results do not depend on it)."),
+    complete_points: int = typer.Option(16384, "--complete-points", min=32, max=MAX_COMPLETE_POINTS, help="Points per complete cloud (PCN: 16384)."),
+    overwrite: bool = OVERWRITE,
+    json_out: bool = JSON,
+) -> None:
+    """Make a PCN-layout dataset from complete shapes: meshes (OBJ, OFF, STL, PLY with faces) and point clouds.
+
+    A mesh gives area-uniform surface points and depth renders (needs open3d); a cloud is
+    densified in its tangent planes and seen through surface splats, so that its views
+    occlude like views of a surface. A bad shape is one line on stderr; the others are
+    written, and the exit code is 1 at the end.
+
+    Writes OUT/{train,val,test}/{partial,complete}/..., OUT/PCN.json and OUT/escape_shapes.json.
+    """
+    import json
+    import logging
+    import sys
+
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    from escape_cli.cli.main import one_line
+    from escape_cli.data.from_shapes import METADATA_FILE, ShapesConfig, build_from_shapes, check_shapes_config, find_shapes
+    from escape_cli.data.synth import prepare_output
+    from escape_cli.errors import DatasetError
+    from escape_cli.io.files import check_output_folder
+
+    log = logging.getLogger("escape")
+    config = ShapesConfig(
+        views={"train": views, "val": eval_views, "test": eval_views}, seed=seed, complete_points=complete_points,
+        val_fraction=val_fraction, test_fraction=test_fraction,
+    )
+    check_shapes_config(config)
+    missing = [s for s in sources if not s.exists()]
+    if missing:
+        raise DatasetError(f"{missing[0]}: no such file or folder")
+    check_output_folder(out, inputs=[s for s in sources if s.is_dir()])
+    find_shapes(sources, category)  # no shape at all: one line before any progress bar
+    prepare_output(out, overwrite, extra_files=(METADATA_FILE,))  # a non-empty folder is refused before the work
+    quiet = not log.isEnabledFor(logging.WARNING)
+    console = Console(stderr=True)
+    progress = Progress(
+        TextColumn("[bold]shapes[/bold]"), BarColumn(), MofNCompleteColumn(), TextColumn("shapes"),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=console, disable=quiet,
+    )
+    task = progress.add_task("shapes", total=None)
+
+    def started(count: int, skipped: int) -> None:
+        progress.update(task, total=count)
+        if skipped:
+            log.info("skipped %d files that are not shape files", skipped)
+
+    def finished(result: dict) -> None:
+        if "error" in result:
+            print(f"escape: error: {one_line(result['error'])}", file=sys.stderr, flush=True)
+        progress.advance(task)
+
+    with progress:
+        metadata = build_from_shapes(out, sources, config, category=category, workers=workers, overwrite=True,
+                                     on_shape=finished, on_start=started)
+    totals, timing = metadata["totals"], metadata["timing"]
+    print_summary(
+        f"escape: wrote {totals['written']} shapes, {totals['partial_views']} partial views to {out} in "
+        f"{timing['elapsed_s']:.1f} s ({timing['shapes_per_s']:.2f} shapes/s)"
+    )
+    if json_out:
+        typer.echo(json.dumps(metadata))
+    if totals["failed"]:
+        raise DatasetError(f"{totals['failed']} of {totals['shapes']} shapes could not be used (named above); the others were written")
+
+
 @app.command("info")
 def info(
     root: Path = typer.Argument(..., help="Dataset root in the PCN layout."),
@@ -101,10 +186,14 @@ def info(
     """Count the models and partial views per split and category of a PCN-layout dataset."""
     import json
 
-    from escape_cli.data.pcn import CATEGORIES, SPLITS, list_samples, resolve_categories
+    from escape_cli.data.pcn import SPLITS, category_name, dataset_categories, list_samples, resolve_categories
     from escape_cli.errors import DatasetError
 
-    synsets = resolve_categories(categories)
+    if not Path(root).is_dir():
+        raise DatasetError(f"dataset root {root} is not a folder")
+    known = dataset_categories(root)
+    synsets = resolve_categories(categories, known)
+    names = {synset: category_name(synset, known) for synset in synsets}
     counts: dict[str, dict[str, dict[str, int]]] = {}
     for split in SPLITS:
         try:
@@ -116,7 +205,7 @@ def info(
         per_category = counts.setdefault(split, {})
         for synset in synsets:
             mine = [r for r in refs if r.synset == synset]
-            per_category[CATEGORIES[synset]] = {"models": len({r.model_id for r in mine}), "views": len(mine)}
+            per_category[names[synset]] = {"models": len({r.model_id for r in mine}), "views": len(mine)}
     if not counts:
         raise DatasetError(f"{root}: no split with samples (PCN layout expected)")
     if json_out:

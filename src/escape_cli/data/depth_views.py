@@ -49,6 +49,18 @@ def random_view_direction(rng: np.random.Generator) -> np.ndarray:
             return v / norm
 
 
+def draw_viewpoint(rng: np.random.Generator, camera: DepthCamera) -> tuple[np.ndarray, np.ndarray]:
+    """A random camera position looking at the origin, and its approximate up; two (3,) float64.
+
+    The draws (direction, then distance) are the ones every dataset generator has made
+    since generator 1, so its files stay byte for byte the same.
+    """
+    direction = random_view_direction(rng)
+    distance = rng.uniform(*camera.distance_range)
+    up = np.array([0.0, 1.0, 0.0]) if abs(direction[1]) < 0.95 else np.array([1.0, 0.0, 0.0])
+    return direction * distance, up
+
+
 class DepthScanner:
     """Casts pinhole depth views of one triangle mesh.
 
@@ -117,10 +129,8 @@ class DepthScanner:
         views = []
         for _ in range(n_views):
             for _attempt in range(cam.max_attempts):
-                direction = random_view_direction(rng)
-                distance = rng.uniform(*cam.distance_range)
-                up = np.array([0.0, 1.0, 0.0]) if abs(direction[1]) < 0.95 else np.array([1.0, 0.0, 0.0])
-                points = self.scan(direction * distance, up)
+                eye, up = draw_viewpoint(rng, cam)
+                points = self.scan(eye, up)
                 if len(points) >= cam.min_points:
                     views.append(points)
                     break

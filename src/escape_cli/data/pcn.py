@@ -46,44 +46,92 @@ SPLIT_FILE = "PCN.json"
 # --------------------------------------------------------------------------- categories
 
 
-def resolve_categories(names_or_synsets: Sequence[str] | None) -> list[str]:
-    """Turn category names or synset ids into synset ids.
+def resolve_categories(names_or_synsets: Sequence[str] | None, known: dict[str, str] | None = None) -> list[str]:
+    """Turn category names or taxonomy ids into taxonomy ids.
 
     Parameters
     ----------
     names_or_synsets : sequence of str or None
-        Names ("chair", case-insensitive) or synsets ("03001627"); entries may also be
-        comma-separated lists. None or empty means all 8 categories.
+        Names ("chair", case-insensitive) or ids ("03001627"); entries may also be
+        comma-separated lists. None or empty means every known category.
+    known : dict of str to str, optional
+        The categories to choose from, ``{taxonomy id: name}``: a dataset's own
+        (`dataset_categories`), the default when no name is given; PCN's 8 are
+        recognised in any case. Default: PCN's 8.
 
     Returns
     -------
-    synsets : list of str
+    ids : list of str
         Sorted, without duplicates.
 
     Raises
     ------
     DatasetError
-        On an unknown name or synset.
+        On an unknown name or id.
     """
+    default = CATEGORIES if known is None else known
     if not names_or_synsets:
-        return sorted(CATEGORIES)
-    by_name = {name: synset for synset, name in CATEGORIES.items()}
+        return sorted(default)
+    known = {**CATEGORIES, **default}
+    by_name = {name.lower(): synset for synset, name in known.items()}
     synsets = set()
     for entry in names_or_synsets:
         for token in str(entry).split(","):
             token = token.strip()
             if not token:
                 continue
-            if token in CATEGORIES:
+            if token in known:
                 synsets.add(token)
             elif token.lower() in by_name:
                 synsets.add(by_name[token.lower()])
             else:
-                known = ", ".join(f"{n} ({s})" for s, n in sorted(CATEGORIES.items()))
-                raise DatasetError(f"unknown category {token!r}; known: {known}")
+                shown = ", ".join(n if n == s else f"{n} ({s})" for s, n in sorted(known.items()))
+                raise DatasetError(f"unknown category {token!r}; known: {shown}")
     if not synsets:
         raise DatasetError("no category given")
     return sorted(synsets)
+
+
+def category_name(synset: str, known: dict[str, str] | None = None) -> str:
+    """The name of a taxonomy id: the dataset's (`known`), PCN's, or the id itself."""
+    if known and synset in known:
+        return known[synset]
+    return CATEGORIES.get(synset, synset)
+
+
+def dataset_categories(root: str | Path) -> dict[str, str]:
+    """Every category of a PCN-layout dataset, ``{taxonomy id: name}``.
+
+    From its PCN.json (``taxonomy_name``, else the PCN name or the id) where it has one,
+    else from the category folders of its splits. A root with neither gives PCN's 8.
+    """
+    root = Path(root)
+    split_file = root / SPLIT_FILE
+    if split_file.is_file():
+        names = _split_file_names(split_file)
+        if names:
+            return names
+    found = set()
+    for split in SPLITS:
+        folder = root / split / "partial"
+        if folder.is_dir():
+            found.update(p.name for p in folder.iterdir() if p.is_dir())
+    return {synset: category_name(synset) for synset in sorted(found)} if found else dict(CATEGORIES)
+
+
+def _split_file_names(path: Path) -> dict[str, str]:
+    try:
+        entries = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(entries, list):
+        return {}
+    names = {}
+    for entry in entries:
+        if isinstance(entry, dict) and "taxonomy_id" in entry:
+            synset = str(entry["taxonomy_id"])
+            names[synset] = str(entry.get("taxonomy_name") or category_name(synset))
+    return names
 
 
 # --------------------------------------------------------------------------- PCD files
@@ -162,7 +210,8 @@ def write_model(root: str | Path, split: str, synset: str, model_id: str, comple
         write_pcd(partial_path(root, split, synset, model_id, view), partial)
 
 
-def write_split_file(root: str | Path, model_ids: dict[str, dict[str, list[str]]]) -> Path:
+def write_split_file(root: str | Path, model_ids: dict[str, dict[str, list[str]]],
+                     names: dict[str, str] | None = None) -> Path:
     """Write ROOT/PCN.json.
 
     Parameters
@@ -170,6 +219,8 @@ def write_split_file(root: str | Path, model_ids: dict[str, dict[str, list[str]]
     root : str or Path
     model_ids : dict
         ``{synset: {split: [model ids]}}``.
+    names : dict, optional
+        ``{synset: taxonomy name}``; default the PCN name, else the id.
 
     Returns
     -------
@@ -177,7 +228,7 @@ def write_split_file(root: str | Path, model_ids: dict[str, dict[str, list[str]]
     """
     entries = []
     for synset in sorted(model_ids):
-        entry = {"taxonomy_id": synset, "taxonomy_name": CATEGORIES.get(synset, synset)}
+        entry = {"taxonomy_id": synset, "taxonomy_name": (names or {}).get(synset) or category_name(synset)}
         for split in SPLITS:
             entry[split] = list(model_ids[synset].get(split, []))
         entries.append(entry)
@@ -235,6 +286,7 @@ class SampleRef:
     view: int
     partial_path: Path
     complete_path: Path
+    category: str = ""  # the category's name ("" : the PCN name or the id)
 
 
 @dataclass(frozen=True)
@@ -299,9 +351,11 @@ def list_samples(root: str | Path, split: str = "test", categories: Sequence[str
     if views not in ("all", "first"):
         raise DatasetError(f"views must be 'all' or 'first', got {views!r}")
     root = Path(root)
-    synsets = resolve_categories(categories)
     if not root.is_dir():
         raise DatasetError(f"dataset root {root} is not a folder")
+    known = dataset_categories(root)
+    synsets = resolve_categories(categories, known)
+    known = {**CATEGORIES, **known}
     partial_root, complete_root = root / split / "partial", root / split / "complete"
     if not partial_root.is_dir() or not complete_root.is_dir():
         raise DatasetError(f"{root} has no {split}/partial and {split}/complete folders (PCN layout expected)")
@@ -324,11 +378,11 @@ def list_samples(root: str | Path, split: str = "test", categories: Sequence[str
             if views == "first":
                 view_files = view_files[:1]
             for view, file in view_files:
-                refs.append(SampleRef(root, split, synset, model_id, view, file, complete))
+                refs.append(SampleRef(root, split, synset, model_id, view, file, complete, known[synset]))
     if missing:
         log.info("%d models of %s/%s have no partial views or no complete cloud on disk; skipped", missing, root, split)
     if not refs:
-        names = ", ".join(CATEGORIES[s] for s in synsets)
+        names = ", ".join(known[s] for s in synsets)
         source = f"listed in {split_file.name}" if listed is not None else "found"
         raise DatasetError(f"no {split} samples {source} under {root} for {names}")
     return refs
@@ -382,7 +436,7 @@ def read_sample(ref: SampleRef, n_points: int | None = 2048, seed: int = 0) -> P
         raise DatasetError(f"{ref.complete_path} holds no finite points")
     if n_points is not None:
         partial = resample_points(partial, n_points, np.random.default_rng(_sample_seed(seed, ref)))
-    return PCNSample(partial, complete, ref.synset, CATEGORIES.get(ref.synset, ref.synset), ref.model_id, ref.view)
+    return PCNSample(partial, complete, ref.synset, ref.category or category_name(ref.synset), ref.model_id, ref.view)
 
 
 class PCNDataset:

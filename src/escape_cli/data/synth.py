@@ -147,27 +147,33 @@ def _make_and_write(args: tuple[str, SynthConfig, tuple[str, str, int]]) -> dict
             "partial_points": [len(p) for p in obj.partials]}
 
 
-def _run_jobs(root: Path, config: SynthConfig, workers: int) -> Iterator[dict]:
-    jobs = [(str(root), config, job) for job in config.jobs()]
-    if workers <= 1:
-        yield from map(_make_and_write, jobs)
-        return
+def single_threaded_pool(workers: int):
+    """A spawn pool of `workers` processes whose numeric libraries use one thread each."""
     saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     os.environ.update({k: "1" for k in saved})  # one thread per worker process
     try:
-        pool = multiprocessing.get_context("spawn").Pool(workers)
+        return multiprocessing.get_context("spawn").Pool(workers)
     finally:
         for key, value in saved.items():
             if value is None:
                 os.environ.pop(key, None)
             else:
                 os.environ[key] = value
-    with pool:
+
+
+def _run_jobs(root: Path, config: SynthConfig, workers: int) -> Iterator[dict]:
+    jobs = [(str(root), config, job) for job in config.jobs()]
+    if workers <= 1:
+        yield from map(_make_and_write, jobs)
+        return
+    with single_threaded_pool(workers) as pool:
         yield from pool.imap_unordered(_make_and_write, jobs, chunksize=2)
 
 
-def prepare_output(root: str | Path, overwrite: bool) -> Path:
+def prepare_output(root: str | Path, overwrite: bool, extra_files: Sequence[str] = ()) -> Path:
     """Check the output folder; with `overwrite`, remove what an earlier run wrote there.
+
+    `extra_files` are more metadata files a generator writes at the root.
 
     Raises
     ------
@@ -182,7 +188,7 @@ def prepare_output(root: str | Path, overwrite: bool) -> Path:
             raise OutputExistsError(f"{root} exists and is not empty (use --overwrite to replace the dataset in it)")
         for split in SPLITS:
             shutil.rmtree(root / split, ignore_errors=True)
-        for name in (SPLIT_FILE, METADATA_FILE):
+        for name in (SPLIT_FILE, METADATA_FILE, *extra_files):
             (root / name).unlink(missing_ok=True)
     root.mkdir(parents=True, exist_ok=True)
     return root
