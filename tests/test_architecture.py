@@ -14,6 +14,7 @@ LAYERS = {
     "escape_cli.errors": 0,
     "escape_cli.version": 0,
     "escape_cli.formats": 0,
+    "escape_cli.interrupts": 0,
     "escape_cli.extras": 1,
     "escape_cli.core": 1,
     "escape_cli.io": 2,

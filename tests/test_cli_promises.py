@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 import types
 import warnings
 from pathlib import Path
@@ -404,3 +405,175 @@ def test_stdout_write_failures_name_stdout(monkeypatch):
     monkeypatch.setattr(sys, "stdout", Full())
     with pytest.raises(OutputFileError, match="cannot write to stdout"):
         write_output_bytes("-", b"data")
+
+
+# ------------------------------------------------------------------ closed standard streams (GNU tools' way)
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "car.ply"
+
+
+def _run_closed(argv, closed: tuple[int, ...], **kwargs) -> subprocess.CompletedProcess:
+    """`escape ARGV` with the descriptors `closed` shut, as `>&-`, `2>&-` or `<&-` would."""
+    def close():
+        for fd in closed:
+            os.close(fd)
+
+    return subprocess.run([sys.executable, "-m", "escape_cli", *map(str, argv)], capture_output=True,
+                          preexec_fn=close, timeout=300, **kwargs)
+
+
+def test_a_closed_stderr_changes_neither_the_data_nor_the_exit_code(tmp_path, tiny_model):
+    argv = ["complete", EXAMPLE, "-o", "-", "--model", tiny_model, "--points", "500"]
+    normal, quiet = _run_closed(argv, ()), _run_closed(argv, (2,))
+    assert normal.returncode == quiet.returncode == 0, normal.stderr
+    assert normal.stderr.decode().startswith('{"input"')  # the summary goes to stderr...
+    assert quiet.stdout == normal.stdout and normal.stdout.startswith(b"ply\n")  # ...never into the data
+    failed = _run_closed(["complete", tmp_path / "missing.ply", "-o", "-", "--model", tiny_model], (2,))
+    assert failed.returncode == 1 and failed.stdout == b""
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["anchors", "{scan}", "--json"], ["anchors", "{scan}", "-o", "-"]])
+@pytest.mark.parametrize("stderr_too", [False, True], ids=["stdout closed", "both closed"])
+def test_a_command_that_must_print_to_a_closed_stdout_says_so(scan, argv, stderr_too):
+    done = _run_closed([a.format(scan=scan) for a in argv], (1, 2) if stderr_too else (1,))
+    assert done.returncode == 1
+    assert done.stderr.decode().splitlines() == ([] if stderr_too else ["escape: error: cannot write to stdout: Bad file descriptor"])
+
+
+def test_a_command_with_nothing_to_print_succeeds_with_stdout_closed(scan, tmp_path, tiny_model):
+    out = tmp_path / "o.ply"
+    done = _run_closed(["complete", scan, "-o", out, "--model", tiny_model, "--points", "300"], (1,))
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.decode().startswith('{"input"')
+    assert len(read_points(out)) == 300
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.ply", "scan.ply"]
+
+
+def test_a_closed_stdin_is_one_line(tmp_path, tiny_model):
+    done = _run_closed(["complete", "-", "-o", tmp_path / "o.ply", "--model", tiny_model], (0,))
+    assert done.returncode == 1
+    assert done.stderr.decode().splitlines() == ["escape: error: <stdin>: cannot read (Bad file descriptor)"]
+
+
+# ------------------------------------------------------------------ Ctrl-C and SIGTERM at any moment
+
+
+def _handlers_installed(pid: int) -> bool:
+    """Whether process `pid` catches SIGTERM: escape's first instruction has run (Python alone never catches it)."""
+    if not Path(f"/proc/{pid}").exists():
+        return True  # gone already: nothing to wait for
+    return bool(_signal_mask(pid, "SigCgt") >> (signal.SIGTERM - 1) & 1)
+
+
+def _signal_mask(pid: int, field: str) -> int:
+    """The SigBlk / SigIgn / SigCgt mask of process `pid` (0 when it is gone)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return 0
+    return int(next(line for line in status.splitlines() if line.startswith(field + ":")).split()[1], 16)
+
+
+def _children(pid: int) -> list[int]:
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(child) for child in (task / "children").read_text().split()]
+        except OSError:
+            pass
+    return found
+
+
+def _interrupted_at(argv, delay: float, signum=signal.SIGINT, before=None) -> subprocess.CompletedProcess:
+    """Run `escape ARGV`; `delay` seconds after its entry point's first instruction, call `before(pid)`
+    and send `signum` to its process group (as a terminal's Ctrl-C reaches every process of the job,
+    workers included)."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "escape_cli", *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # a background shell may have ignored it
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 5  # (then the signal is sent anyway, and the checks say what went wrong)
+        while not _handlers_installed(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.001)
+        time.sleep(delay)
+        if before is not None:
+            before(process.pid)
+        try:
+            os.killpg(process.pid, signum)
+        except ProcessLookupError:
+            pass
+        out, err = process.communicate(timeout=120)  # returns once every process holding the pipes is gone
+    finally:
+        if process.poll() is None:
+            process.kill()
+    return subprocess.CompletedProcess(process.args, process.returncode, out, err)
+
+
+def _check_interrupted(done, signum, out_folder: Path, points: int) -> bool:
+    """The promises of an interrupted run (or of one that finished first); True when it was interrupted."""
+    err = done.stderr.decode()
+    if done.returncode == 0:
+        assert err == "", err
+    else:
+        assert done.returncode == 128 + signum, err
+        assert err == "escape: interrupted\n", err
+    leftovers = [p.name for p in out_folder.rglob("*") if p.name.endswith(".tmp")]
+    assert not leftovers, leftovers
+    for path in out_folder.rglob("*.ply"):  # finished outputs are whole
+        assert len(read_points(path)) == points, path
+    return done.returncode != 0
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal handlers from /proc")
+def test_an_interrupt_at_any_moment_of_one_scan_is_one_line(tmp_path):
+    """From the first instruction of the entry point on: start-up imports, the model's load, the scan, the writing."""
+    moments = [(signal.SIGINT, d) for d in (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.5)]
+    moments += [(signal.SIGTERM, d) for d in (0.0, 0.1, 0.4)]
+    interrupted = 0
+    for i, (signum, delay) in enumerate(moments):
+        out = tmp_path / f"run{i}"
+        out.mkdir()
+        done = _interrupted_at(["-q", "complete", EXAMPLE, "-o", out / "car.ply", "--points", "4000"], delay, signum)
+        interrupted += _check_interrupted(done, signum, out, 4000)
+    assert interrupted >= len(moments) - 2  # a cold one-scan run takes longer than these moments
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal handlers from /proc")
+def test_an_interrupt_in_a_worker_pool_is_one_line_and_leaves_no_worker(tmp_path):
+    """Workers never see Ctrl-C (not even while their interpreter starts): the parent stops them,
+    removes what they were writing and keeps what they finished."""
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for i in range(3):
+        for example in sorted(EXAMPLE.parent.glob("*.p[lc][yd]")):
+            (scans / f"{example.stem}_{i}{example.suffix}").write_bytes(example.read_bytes())
+    sigint = 1 << (signal.SIGINT - 1)
+    workers_seen = []
+
+    def workers_hold_sigint_back(pid):
+        for child in _children(pid):  # the workers and multiprocessing's resource tracker
+            assert (_signal_mask(child, "SigBlk") | _signal_mask(child, "SigIgn")) & sigint, f"worker {child} takes Ctrl-C"
+            try:
+                if b"spawn_main" in Path(f"/proc/{child}/cmdline").read_bytes():
+                    workers_seen.append(child)
+            except OSError:
+                pass
+
+    moments = [(signal.SIGINT, d) for d in (0.3, 0.9, 1.5, 3.0)] + [(signal.SIGTERM, 1.2)]
+    for i, (signum, delay) in enumerate(moments):
+        out = tmp_path / f"out{i}"
+        argv = ["complete", scans, "-o", out, "--workers", "2", "--json", "--points", "2000"]
+        done = _interrupted_at(argv, delay, signum, before=workers_hold_sigint_back)
+        assert done.returncode == 128 + signum, done.stderr
+        _check_interrupted(done, signum, out, 2000)
+    assert workers_seen
+    assert not [pid for pid in workers_seen if _alive(pid)]  # none left behind (killed and reaped by the parent)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return False

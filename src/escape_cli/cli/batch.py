@@ -9,6 +9,7 @@ import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import escape_cli.interrupts as interrupts
 from escape_cli.cli.inputs import expand_inputs
 from escape_cli.engines.jobs import CompletionJob, complete_file
 from escape_cli.errors import InputFileError, ParameterError
@@ -198,6 +199,8 @@ class _progress:
 
             self.bar = Progress(console=Console(stderr=True), transient=True)
             self.bar.start()
+            self.stop_on_interrupt = interrupts.on_interrupt(self.bar.stop)  # the terminal's cursor back
+            self.stop_on_interrupt.__enter__()
             task = self.bar.add_task("completing", total=self.total)
             return lambda: self.bar.advance(task)
         return lambda: None
@@ -205,6 +208,7 @@ class _progress:
     def __exit__(self, *exc):
         if self.bar is not None:
             self.bar.stop()
+            self.stop_on_interrupt.__exit__(*exc)
 
 
 __all__ = ["ENGINES", "CompletionJob", "Plan", "check_model", "parse_shard", "plan_jobs", "read_files_from", "run_jobs"]

@@ -1,4 +1,9 @@
-"""The `escape` command's entry point: for `escape complete`, the network starts loading first.
+"""The `escape` command's entry point: signals and closed streams first, then, for `escape complete`, the network's load.
+
+Its first statements make Ctrl-C and SIGTERM end the process with one line and 130 or
+143 at any moment from here on (`escape_cli.interrupts`), and put /dev/null under any
+standard descriptor the caller closed (`cli.streams`), before anything heavy is
+imported.
 
 A cold `escape complete scan.ply -o out.ply` spends most of its time importing (typer,
 numpy, scipy) and building the onnxruntime session. The session builds without the
@@ -11,13 +16,19 @@ CPU time: nothing here reports an error, and the command loads what it needs its
 
 from __future__ import annotations
 
-import sys
+import escape_cli.interrupts as interrupts
 
-from escape_cli.cli.argv import preload_target
+interrupts.install()  # first: an interrupt during the imports below is one line too
+
+import sys  # noqa: E402
+
+from escape_cli.cli.argv import preload_target  # noqa: E402
+from escape_cli.cli.streams import reopen_closed  # noqa: E402
 
 
 def main() -> None:
     """`escape ...`: start the model's load when the command will need it, then run the CLI."""
+    reopen_closed()
     wanted, model = preload_target(sys.argv[1:])
     loading = None
     if wanted:

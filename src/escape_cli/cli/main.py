@@ -27,6 +27,7 @@ import typer
 
 from escape_cli.version import __version__
 from escape_cli.cli.argv import GLOBAL_OPTIONS
+from escape_cli.cli.streams import is_closed_stdout_error
 from escape_cli.cli import (
     cmd_anchors,
     cmd_average_checkpoints,
@@ -215,7 +216,8 @@ def run(argv: list[str]) -> int:
         stdout_before = _stdout_identity()
         try:
             code = _invoke(argv)
-            sys.stdout.flush()  # a full disk or a closed pipe under stdout shows here, not at exit
+            if sys.stdout is not None:
+                sys.stdout.flush()  # a full disk or a closed pipe under stdout shows here, not at exit
             return code
         except SystemExit as exit_:
             # rich (help pages, tables) answers a broken pipe by pointing stdout at
@@ -245,6 +247,9 @@ def run(argv: list[str]) -> int:
         except MemoryError:
             return _fail("out of memory (a smaller cloud, or fewer --points, may fit)", 1)
         except OSError as err:
+            if is_closed_stdout_error(err):  # `escape --version >&-`: as GNU tools say it
+                _detach_stdout()
+                return _fail(f"cannot write to stdout: {err.strerror or err}", 1)
             if err.errno not in ENVIRONMENT_ERRNOS or log.isEnabledFor(logging.DEBUG):
                 return _internal_error(err)
             where = f" {err.filename}" if err.filename else " to stdout"  # files' errors name them

@@ -21,6 +21,7 @@ from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
+import escape_cli.interrupts as interrupts
 from escape_cli.engines.jobs import CompletionJob, complete_chunk, failure, warm_model
 
 log = logging.getLogger("escape")
@@ -57,30 +58,60 @@ def run_local(jobs: list[CompletionJob], settings: CompletionJob.Settings, *, wo
         Summaries, in the order the chunks finish (not the order of `jobs`).
     """
     import multiprocessing
+    from multiprocessing import resource_tracker
 
+    resource_tracker.ensure_running()  # now: starting it unblocks SIGINT, undoing `interrupts.deferred` around a worker's start
     size = chunk_size or chunk_size_for(len(jobs), workers)
     queue = deque(_Task(tuple(jobs[i : i + size]), retry=False) for i in range(0, len(jobs), size))
     context = multiprocessing.get_context("spawn")
     level = logging.getLogger("escape").getEffectiveLevel()
     pool: list[_Worker] = []
     deaths = _StartupDeaths()
+    folders = output_folders(jobs)
     finished = False
     try:
-        while queue or _busy(pool):
-            for worker in pool:
-                if worker.task is None and queue:
+        with interrupts.on_interrupt(lambda: _abandon(pool, folders)):
+            while queue or _busy(pool):
+                for worker in pool:
+                    if worker.task is None and queue:
+                        worker.give(queue.popleft())
+                while queue and len(pool) < workers:
+                    with interrupts.deferred():  # see there: Ctrl-C is the parent's alone
+                        worker = _Worker(context, settings, level)
+                        pool.append(worker)
                     worker.give(queue.popleft())
-            while queue and len(pool) < workers:
-                worker = _Worker(context, settings, level)
-                pool.append(worker)
-                worker.give(queue.popleft())
-            yield from _collect(pool, queue, deaths)
-            if deaths.broken:
-                yield from _give_up(pool, queue, deaths.broken)
-        finished = True
+                yield from _collect(pool, queue, deaths, folders)
+                if deaths.broken:
+                    yield from _give_up(pool, queue, deaths.broken)
+            finished = True
     finally:
         for worker in pool:
             worker.stop(gently=finished)
+
+
+def output_folders(jobs: list[CompletionJob]) -> set[Path]:
+    """The folders the jobs write into (where a stopped worker may leave a temporary file)."""
+    return {Path(path).parent for job in jobs for path in (job.output, job.anchors) if path is not None}
+
+
+def _abandon(pool: list[_Worker], folders: set[Path]) -> None:
+    """On Ctrl-C or SIGTERM: kill every worker, then remove what they were writing.
+
+    Their finished outputs are whole (renamed into place); a half-written one is a
+    temporary file named with the worker's process id, in an output folder.
+    """
+    for worker in pool:
+        worker.process.kill()
+    for worker in pool:
+        worker.process.join()
+    _remove_temporary_files(folders, [worker.process.pid for worker in pool])
+
+
+def _remove_temporary_files(folders: set[Path], pids: list[int]) -> None:
+    from escape_cli.io.files import remove_temporary_files
+
+    for folder in folders:
+        remove_temporary_files(folder, pids=pids)
 
 
 class _StartupDeaths:
@@ -174,8 +205,9 @@ def _busy(pool: list[_Worker]) -> list[_Worker]:
     return [worker for worker in pool if worker.task is not None]
 
 
-def _collect(pool: list[_Worker], queue: deque, deaths: _StartupDeaths):
-    """Wait until a busy worker answers or dies; yield what came back, requeue or fail a dead one's files."""
+def _collect(pool: list[_Worker], queue: deque, deaths: _StartupDeaths, folders: set[Path]):
+    """Wait until a busy worker answers or dies; yield what came back, requeue or fail a dead one's files
+    (and remove what it was writing)."""
     from multiprocessing.connection import wait
 
     busy = _busy(pool)
@@ -191,6 +223,7 @@ def _collect(pool: list[_Worker], queue: deque, deaths: _StartupDeaths):
             continue
         pool.remove(worker)
         task, how = worker.task, worker.death()
+        _remove_temporary_files(folders, [worker.process.pid])
         deaths.record(worker, how)
         if task.retry:  # its error line says so
             yield from (failure(job, f"the worker completing it died ({how}), also when retried in a fresh worker") for job in task.jobs)
@@ -202,8 +235,8 @@ def _collect(pool: list[_Worker], queue: deque, deaths: _StartupDeaths):
 
 def _serve(conn, settings: CompletionJob.Settings, level: int) -> None:
     """A worker process: load the model once, then complete the chunks that come, until None."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle (it was blocked until now)
     logging.basicConfig(level=level, format="escape: %(levelname)s: %(message)s")
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     warm_model(settings)
     exit_stem = os.environ.get(WORKER_EXIT_ENV)
     while True:

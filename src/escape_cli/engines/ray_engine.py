@@ -18,8 +18,11 @@ import json
 import logging
 import os
 import re
+import signal
 import warnings
+from pathlib import Path
 
+import escape_cli.interrupts as interrupts
 from escape_cli.engines.jobs import CompletionJob, complete_chunk, failure, warm_model
 from escape_cli.errors import EscapeError
 
@@ -54,12 +57,52 @@ def run_ray(jobs: list[CompletionJob], settings: CompletionJob.Settings, *, acto
         Summaries, in the order the chunks finish.
     """
     ray = _import_ray()
-    own = _connect(ray, address)
-    try:
-        yield from _run(ray, jobs, settings, actors, chunk_size)
-    finally:
-        if own:
+    own = not ray.is_initialized()  # this call starts (or joins) Ray, and stops (or leaves) it
+    with interrupts.on_interrupt(lambda: _abandon(ray, own, jobs)):  # from the start of ray.init on
+        _connect(ray, address)
+        try:
+            yield from _run(ray, jobs, settings, actors, chunk_size)
+        finally:
+            if own:
+                ray.shutdown()
+
+
+def _abandon(ray, own: bool, jobs: list[CompletionJob]) -> None:
+    """On Ctrl-C or SIGTERM: stop the Ray this command started (its actors with it; also half-started),
+    then remove the temporary files of outputs that actors were writing (any process's: actors' ids are Ray's)."""
+    from escape_cli.io.files import remove_temporary_files
+
+    if own:
+        saved = _silence_stderr()  # Ray's native code reports the actors it loses there while it stops
+        try:
             ray.shutdown()
+        finally:
+            _restore_stderr(saved)
+    names: dict[Path, set[str]] = {}
+    for job in jobs:
+        for path in (job.output, job.anchors):
+            if path is not None:
+                names.setdefault(Path(path).parent, set()).add(Path(path).name)
+    for folder, inside in names.items():
+        remove_temporary_files(folder, names=inside)
+
+
+def _silence_stderr() -> int | None:
+    """Point descriptor 2 at /dev/null; returns a copy of what it was (None if that failed)."""
+    try:
+        saved = os.dup(2)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except OSError:
+        return None
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    return saved
+
+
+def _restore_stderr(saved: int | None) -> None:
+    if saved is not None:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _import_ray():
@@ -71,10 +114,10 @@ def _import_ray():
     return ray
 
 
-def _connect(ray, address: str | None) -> bool:
-    """Join or start Ray; True when this call started (or joined) it and must shut it down."""
+def _connect(ray, address: str | None) -> None:
+    """Join or start Ray, unless this process is connected already."""
     if ray.is_initialized():
-        return False
+        return
     quiet = {"log_to_driver": False, "logging_level": _ray_log_level(), "include_dashboard": False}
     try:
         if address is None:
@@ -85,7 +128,13 @@ def _connect(ray, address: str | None) -> bool:
     except (ConnectionError, ValueError, RuntimeError) as err:
         where = f"the Ray cluster at {address}" if address else "a local Ray"
         raise EscapeError(f"cannot start or reach {where}: {' '.join(str(err).split())}") from None
-    return True
+    except SystemExit as exit_:  # ray.init's own SIGTERM handler (sys.exit(15)) while Ray starts
+        if interrupts.installed() and exit_.code == signal.SIGTERM:
+            interrupts.interrupt(signal.SIGTERM)
+        raise
+    finally:
+        if interrupts.installed():
+            interrupts.install()  # ray.init leaves its SIGTERM handler in place of the command's
 
 
 def _ray_log_level() -> int:

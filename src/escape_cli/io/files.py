@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import stat
 import sys
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
+import escape_cli.interrupts as interrupts
 from escape_cli.errors import InputFileError, OutputExistsError, OutputFileError
 
 STDIO = "-"
@@ -54,7 +56,10 @@ def read_input_bytes(path: str | Path) -> bytes:
         Missing file, a directory, or a file that cannot be read.
     """
     if is_stdio(path):
-        return sys.stdin.buffer.read()
+        try:
+            return sys.stdin.buffer.read()
+        except OSError as err:  # closed (`<&-`), or a read error of the pipe or terminal
+            raise InputFileError(f"<stdin>: cannot read ({err.strerror or err})") from None
     try:
         with open(path, "rb") as handle:
             if _inputs_read is not None:
@@ -234,6 +239,7 @@ def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False
     finally:
         if temp.exists():
             temp.unlink()
+        interrupts.untrack(temp)
 
 
 def is_stream(path: str | Path) -> bool:
@@ -361,27 +367,67 @@ def check_writable_folder(folder: str | Path, *, create: bool = False) -> None:
         raise OutputFileError(f"cannot create output folder {folder}: {err.strerror or err}") from None
     probe = _create_temp_file(folder / "escape-write-check", f"cannot write to folder {folder}")
     probe.unlink()
+    interrupts.untrack(probe)
 
 
 def _create_temp_file(target: Path, what: str | None = None) -> Path:
-    """Create an empty, exclusive temporary file beside `target` (umask applies).
+    """Create an empty, exclusive temporary file beside `target` (umask applies), named by `temporary_name`.
 
-    `what` starts the error message (default: "cannot write TARGET").
+    An interrupt removes it (`escape_cli.interrupts.track`) until the caller, having
+    renamed or removed it, calls `interrupts.untrack`. `what` starts the error message
+    (default: "cannot write TARGET").
     """
     what = what or f"cannot write {target}"
     for attempt in range(100):
-        temp = target.with_name(f".{target.name}.{os.getpid()}.{attempt}.tmp")
+        temp = target.with_name(temporary_name(target.name, os.getpid(), attempt))
+        interrupts.track(temp)  # before it exists: no moment when it exists untracked
         try:
             fd = os.open(temp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:
+            interrupts.untrack(temp)
             continue
         except PermissionError:
+            interrupts.untrack(temp)
             raise OutputFileError(f"{what}: permission denied") from None
         except OSError as err:
+            interrupts.untrack(temp)
             raise OutputFileError(f"{what}: {err.strerror or err}") from None
         os.close(fd)
         return temp
     raise OutputFileError(f"{what}: no free temporary name beside it")
+
+
+def temporary_name(name: str, pid: int, attempt: int) -> str:
+    """The name of the temporary file process `pid` writes `name` into before renaming it."""
+    return f".{name}.{pid}.{attempt}.tmp"
+
+
+TEMPORARY_NAME = re.compile(r"\.(?P<name>.+)\.(?P<pid>[0-9]+)\.[0-9]+\.tmp")
+
+
+def remove_temporary_files(folder: str | Path, *, pids: Iterable[int] | None = None,
+                           names: Iterable[str] | None = None) -> None:
+    """Remove the temporary files left in `folder` by processes that were stopped mid-write.
+
+    Only those of the processes `pids`, or (any process) of the outputs `names`; never
+    anything else. Errors are ignored: this runs while a stopped batch exits.
+    """
+    pids = None if pids is None else {str(pid) for pid in pids}
+    names = None if names is None else set(names)
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return
+    for entry in entries:
+        match = TEMPORARY_NAME.fullmatch(entry.name)
+        if match is None or (pids is not None and match["pid"] not in pids):
+            continue
+        if names is not None and match["name"] not in names:
+            continue
+        try:
+            os.unlink(entry.path)
+        except OSError:
+            pass
 
 
 def _write_all(temp: Path, data: bytes, target: Path) -> None:
