@@ -20,6 +20,7 @@ LAYERS = {
     "escape_cli.io": 2,
     "escape_cli.data": 3,
     "escape_cli.inference": 3,
+    "escape_cli.model_check": 2,
     "escape_cli.pipeline": 4,
     "escape_cli.engines": 5,
     "escape_cli.evaluation": 5,

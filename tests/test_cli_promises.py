@@ -258,6 +258,46 @@ def test_a_model_onnxruntime_refuses_fails_in_one_line_and_writes_nothing(scan, 
     assert _files(out) == {}
 
 
+@pytest.mark.parametrize(
+    ("edit", "expected"),
+    [
+        ({"k": 3}, "k is 3, but the network's input partial_distances is (B, 256, 8)"),
+        ({"input_points": 10**12}, "input_points is 1000000000000, but the network's input partial_distances is (B, 256, 8)"),
+        ({"output_points": 7}, "output_points is 7, but the network's output distances is (B, 1024, 8)"),
+        ({"input_name": "points"}, "input_name is 'points', but the network's inputs are partial_distances"),
+        ({"output_name": "points"}, "output_name is 'points', but the network's outputs are distances, coarse"),
+        ({"anchors": {"k": 3}}, "anchors.k is 3, but k is 8"),
+        ({"anchors": {"method": "bogus"}}, "bad anchor settings: the anchor method must be one of"),
+        ({"frame": {"kind": "partial", "rows": 0, "radius": 0.28}}, "bad frame record"),
+        ({"frame": "scan"}, "frame must be absolute or a partial-frame record"),
+    ],
+    ids=["k", "input_points", "output_points", "input_name", "output_name", "anchors.k", "anchors.method", "frame rows", "frame"],
+)
+@pytest.mark.parametrize("batch", [False, True], ids=["one scan", "a folder"])
+def test_metadata_that_disagrees_with_the_network_is_one_line_before_any_scan_is_read(
+    scan, tmp_path, tiny_model, monkeypatch, edit, expected, batch
+):
+    import json
+
+    model = tmp_path / "model" / "m.onnx"
+    model.parent.mkdir()
+    model.write_bytes(tiny_model.read_bytes())
+    meta = json.loads(tiny_model.with_suffix(".json").read_text())
+    edit = {key: {**meta[key], **value} if key == "anchors" else value for key, value in edit.items()}
+    model.with_suffix(".json").write_text(json.dumps({**meta, **edit}))
+    if batch:
+        (tmp_path / "scans").mkdir()
+        for name in ("a.ply", "b.ply"):
+            (tmp_path / "scans" / name).write_bytes(scan.read_bytes())
+    _forbid(monkeypatch, "escape_cli.io", "read_point_fields")
+    inputs, output = (tmp_path / "scans", tmp_path / "out") if batch else (scan, tmp_path / "out" / "o.ply")
+    (tmp_path / "out").mkdir()
+    result = run_escape("complete", inputs, "-o", output, "--model", model)
+    assert result.exit_code == 1
+    _one_line(result, f"model metadata {model.with_suffix('.json')}: {expected}")
+    assert _files(tmp_path / "out") == {}
+
+
 # ------------------------------------------------------------------ the machine fails, not escape
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import EscapeError, ModelError
+from escape_cli.model_check import check_against_network, read_signature
 
 DEFAULT_MODEL_NAME = "escape-small.onnx"
 MODEL_ENV = "ESCAPE_MODEL"
@@ -130,8 +131,10 @@ def read_metadata(path: Path) -> dict:
     ------
     ModelError
         `path` is missing, a folder, empty or not an ``.onnx`` file; its metadata is
-        missing, not JSON, not an object, or lacks positive integer ``k``,
-        ``input_points`` and ``output_points``.
+        missing, not JSON, not an object, lacks positive integer ``k``,
+        ``input_points`` and ``output_points``, has bad anchor settings or frame, or
+        disagrees with the network in the file (`model_check.check_against_network`:
+        input and output names, anchors, points; read from the file, without onnxruntime).
     """
     path = Path(path)
     if path.is_dir():
@@ -160,7 +163,49 @@ def read_metadata(path: Path) -> dict:
         value = meta[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ModelError(f"model metadata {meta_path}: {key} must be a positive integer, got {value!r}")
+    check_against_network(meta, _signature(path), meta_path)
+    _check_records(meta, meta_path)
     return meta
+
+
+def _check_records(meta: dict, meta_path: Path) -> None:
+    """The metadata's names, anchor settings and frame, each well formed and agreeing with the counts."""
+    where = f"model metadata {meta_path}"
+    for key in ("input_name", "output_name"):
+        if key in meta and (not isinstance(meta[key], str) or not meta[key]):
+            raise ModelError(f"{where}: {key} must be a tensor name, got {meta[key]!r}")
+    anchors = meta.get("anchors") or {}
+    if not isinstance(anchors, dict):
+        raise ModelError(f"{where}: anchors must be a record of k, method, radius and knn, got {anchors!r}")
+    if anchors.get("k", meta["k"]) != meta["k"]:
+        raise ModelError(f"{where}: anchors.k is {anchors['k']!r}, but k is {meta['k']}")
+    try:
+        AnchorSettings.from_dict({**anchors, "k": meta["k"]})
+    except (EscapeError, TypeError) as err:
+        raise ModelError(f"{where}: bad anchor settings: {err}") from None
+    frame = meta.get("frame")
+    if frame is None or (isinstance(frame, dict) and frame.get("kind") == "absolute"):
+        return  # a model trained in absolute PCN units
+    if not isinstance(frame, dict) or frame.get("kind") != "partial":
+        raise ModelError(f"{where}: frame must be absolute or a partial-frame record (kind, rows, radius), got {frame!r}")
+    try:
+        from escape_cli.core.normalize import PartialFrame
+
+        PartialFrame(frame["rows"], frame["radius"])
+    except (KeyError, TypeError, EscapeError) as err:
+        raise ModelError(f"{where}: bad frame record {frame} ({err})") from None
+
+
+_SIGNATURES: dict = {}  # (path, size, mtime) -> the graph's Signature (or None)
+
+
+def _signature(path: Path):
+    """The inputs and outputs of the ONNX graph in `path`, read once per version of the file."""
+    stat = path.stat()
+    key = (str(path), stat.st_size, stat.st_mtime_ns)
+    if key not in _SIGNATURES:
+        _SIGNATURES[key] = read_signature(path)
+    return _SIGNATURES[key]
 
 
 def max_output_points(meta: dict) -> int:
