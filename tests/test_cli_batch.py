@@ -296,3 +296,36 @@ def test_workers_that_die_as_they_start_stop_the_batch(scans, tmp_path, tiny_mod
     summaries = list(run_local(jobs, settings, workers=1, chunk_size=1))
     assert len(summaries) == 5 and all("die as they start" in s["error"] or "died" in s["error"] for s in summaries)
     assert sum("die as they start" in s["error"] for s in summaries) >= 3
+
+
+NOT_CLOUDS = {
+    "LICENSE": "MIT License\n\nPermission is hereby granted, free of charge\n",
+    "LICENSE_PCL.txt": "Software License Agreement (BSD License)\n\nCopyright (c) 2009, Willow Garage\n",
+    "README.txt": "Scans of the lab\nTaken in May\n",
+    "notes.md": "# notes\n",
+    "meta.json": "{}\n",
+}
+
+
+def test_a_folder_gives_only_its_point_clouds(scans, tmp_path, tiny_model):
+    """Files of unknown extensions and text files that are no clouds are skipped, counted with -v."""
+    for name, text in NOT_CLOUDS.items():
+        (scans / name).write_text(text)
+    (scans / "table.txt").write_text("# x y z\n0 0 0\n1 0 0\n" + "".join(f"{i % 7} {i % 5} {i % 3}\n" for i in range(40)))
+    res = run_escape("-v", "complete", scans, "-o", tmp_path / "out", "--model", tiny_model, "--points", "400", "--json")
+    assert res.exit_code == 0, res.stderr
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.ply", "b.ply", "c.ply", "d.ply", "table.ply"]
+    skipped = ", ".join(sorted(NOT_CLOUDS))
+    assert f"escape: INFO: {scans}: skipped 5 file(s) that are not point clouds ({skipped})" in res.stderr_lines
+    quiet = run_escape("complete", scans, "-o", tmp_path / "again", "--model", tiny_model, "--points", "400", "--json")
+    assert quiet.exit_code == 0 and "skipped" not in quiet.stderr  # a -v line
+
+
+@pytest.mark.parametrize("how", ["named", "glob"])
+def test_files_named_or_globbed_are_read_whatever_they_are_called(scans, tmp_path, tiny_model, how):
+    (scans / "LICENSE_PCL.txt").write_text(NOT_CLOUDS["LICENSE_PCL.txt"])
+    inputs = [scans / "a.ply", scans / "LICENSE_PCL.txt"] if how == "named" else [f"{scans}/*.*"]
+    res, lines = complete(*inputs, "-o", tmp_path / "out", "--model", tiny_model)
+    assert res.exit_code == 1
+    assert by_name(lines)["LICENSE_PCL.txt"]["error"].endswith("line 1: 'Software' is not a number")
+    assert "a.ply" in os.listdir(tmp_path / "out")

@@ -168,6 +168,34 @@ def test_garbage_fails_cleanly(garbage, fmt):
     _check_parse(fmt, garbage)
 
 
+@FUZZ
+@given(arrays(np.float64, st.tuples(st.integers(1, 30), st.just(3)), elements=st.floats(-1e6, 1e6)),
+       st.sampled_from(["xyz", "txt", "pts", "csv"]), st.booleans())
+def test_every_text_cloud_written_is_taken_from_a_folder(cloud, fmt, with_fields):
+    """`looks_like_text_cloud` (the folder filter) never skips a text cloud escape writes, nor others' headers."""
+    from escape_cli.io.text import looks_like_text_cloud
+
+    fields = {"intensity": np.arange(len(cloud), dtype=np.float64)} if with_fields else {}
+    data = cloud_io.text.serialize_text(cloud, fields, fmt=fmt)
+    assert looks_like_text_cloud(data)
+    assert looks_like_text_cloud(data[:64])  # the head of a big file, cut mid-line
+    if fmt in ("xyz", "txt"):  # (csv has a names line of its own, pts starts with its count)
+        assert looks_like_text_cloud(b'"X","Y","Z"\n' + data)  # PDAL's names line
+
+
+@pytest.mark.parametrize("text", [
+    b"Software License Agreement (BSD License)\n\nCopyright (c) 2009\n",
+    b"MIT License\n\nPermission is hereby granted, free of charge\n",
+    b"Scans of the lab\nTaken in May\n",
+    b"1 2\n3 4\n",
+    b"x y z\nhello world again\n",
+])
+def test_text_that_is_no_cloud_is_not_taken_from_a_folder(text):
+    from escape_cli.io.text import looks_like_text_cloud
+
+    assert not looks_like_text_cloud(text)
+
+
 # ----------------------------------------------------------------------------- through the CLI
 
 

@@ -34,7 +34,7 @@ from escape_cli.io.las import is_las, parse_las, serialize_las, template_layout
 from escape_cli.io.npy import is_npy, is_npz, parse_array, parse_npy, serialize_array, serialize_npy, serialize_npz
 from escape_cli.io.pcd import is_pcd, parse_pcd, serialize_pcd
 from escape_cli.io.ply import is_ply, parse_ply, serialize_ply
-from escape_cli.io.text import parse_text, serialize_text
+from escape_cli.io.text import TEXT_FORMATS, looks_like_text_cloud, parse_text, serialize_text
 
 __all__ = [
     "CLOUD_SUFFIXES",
@@ -44,6 +44,7 @@ __all__ = [
     "display_name",
     "format_from_path",
     "input_format",
+    "is_cloud_file",
     "is_stdio",
     "output_format",
     "parse_point_fields",
@@ -86,6 +87,28 @@ def format_from_path(path: str | Path) -> str:
     if not suffix:
         raise FormatError(f"cannot tell the format of {path} (no extension); use --format ({FORMAT_LIST})")
     raise FormatError(f"unknown format '{suffix}' for {path}; use --format ({FORMAT_LIST})")
+
+
+TEXT_HEAD_BYTES = 8192
+
+
+def is_cloud_file(path: str | Path) -> bool:
+    """Whether a file found in a folder is a point cloud to read: a known extension, and for
+    the text formats a first row of numbers (a ``LICENSE.txt`` is skipped, not read).
+
+    A file named on the command line is read whatever it is called; this is for folders.
+    """
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in FORMATS:
+        return False
+    if fmt not in TEXT_FORMATS:
+        return True
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(TEXT_HEAD_BYTES)
+    except OSError:
+        return True  # reading it reports the problem, for that file alone
+    return looks_like_text_cloud(head)
 
 
 def sniff_format(data: bytes) -> str:

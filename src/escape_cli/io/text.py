@@ -19,7 +19,7 @@ from escape_cli.errors import InputFileError
 from escape_cli.formats import TEXT_FORMATS
 from escape_cli.io.common import Fields, format_rows, storage_dtype, tokens_to_float
 
-__all__ = ["TEXT_FORMATS", "parse_text", "serialize_text"]
+__all__ = ["TEXT_FORMATS", "looks_like_text_cloud", "parse_text", "serialize_text"]
 COMMENT_PREFIXES = (b"#", b"//")
 PTS_EXTRA_COLUMNS = {1: ["intensity"], 4: ["intensity", "red", "green", "blue"], 3: ["red", "green", "blue"]}
 
@@ -102,6 +102,36 @@ def parse_text(data: bytes, name: str, fmt: str = "xyz") -> tuple[np.ndarray, Fi
     extra_names = _extra_column_names(header_names, n_columns, fmt)
     fields = {field: table[:, 3 + i].copy() for i, field in enumerate(extra_names)}
     return np.ascontiguousarray(table[:, :3]), fields
+
+
+def looks_like_text_cloud(head: bytes) -> bool:
+    """Whether the first bytes of a file read as the start of a text cloud.
+
+    Its first row of values, after blank lines, comments, a point count and one line of
+    names, must hold three or more numbers: a licence or a note saved as ``.txt``
+    does not. True when `head` holds no complete row to judge by (the reader decides).
+    """
+    lines = head.splitlines()
+    if len(lines) > 1 and not head.endswith((b"\n", b"\r")):
+        lines = lines[:-1]  # cut off by the length of `head`
+    names_seen = False
+    for line in (raw.strip() for raw in lines):
+        if not line or line.startswith(COMMENT_PREFIXES):
+            continue
+        tokens = line.replace(b",", b" ").split()
+        if len(tokens) == 1 and tokens[0].isdigit() and not names_seen:
+            continue  # a point count
+        if _names_or_none(tokens) is not None:
+            if names_seen:
+                return False  # words after words: prose
+            names_seen = True
+            continue
+        try:
+            [float(token) for token in tokens]
+        except ValueError:
+            return False
+        return len(tokens) >= 3
+    return True
 
 
 def serialize_text(points: np.ndarray, fields: Fields, *, fmt: str = "xyz", coordinate_dtype=np.float32) -> bytes:
