@@ -117,6 +117,26 @@ def test_bad_clouds_give_one_line(tmp_path, tiny_model, content, message):
     assert not (tmp_path / "out.ply").exists()
 
 
+@pytest.mark.parametrize("scale", [1e-15, 1e-30, 1e-300, 1e-310])
+def test_a_tiny_cloud_completes_as_the_same_cloud_at_unit_scale(tmp_path, rng, tiny_model, scale):
+    """Any cloud whose points float64 tells apart: 2000 Gaussian points 1e-15 across have 2000 distinct points."""
+    cloud = rng.normal(size=(2000, 3))
+    np.save(tmp_path / "unit.npy", cloud)
+    np.save(tmp_path / "tiny.npy", cloud * scale)
+    for name in ("unit", "tiny"):
+        res = run_escape("complete", tmp_path / f"{name}.npy", "-o", tmp_path / f"{name}.ply", "--model", tiny_model)
+        assert res.exit_code == 0, res.stderr
+    unit, tiny = read_points(tmp_path / "unit.ply"), read_points(tmp_path / "tiny.ply")
+    np.testing.assert_allclose(tiny / scale, unit, rtol=0, atol=1e-6)  # the unit-scale file holds float32
+
+
+def test_a_cloud_float64_cannot_tell_apart_names_its_distinct_points(tmp_path, rng, tiny_model):
+    np.save(tmp_path / "flat.npy", 1.0 + rng.normal(size=(2000, 3)) * 1e-17)  # every point rounds to (1, 1, 1)
+    res = run_escape("complete", tmp_path / "flat.npy", "-o", tmp_path / "o.ply", "--model", tiny_model)
+    assert res.exit_code == 1
+    assert res.stderr_lines == [f"escape: error: {tmp_path / 'flat.npy'}: the input has 1 distinct points; at least 16 are needed to complete it"]
+
+
 def test_corrupt_or_missing_model(scan, tmp_path, tiny_model):
     res = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", tmp_path / "none.onnx")
     assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "does not exist" in res.stderr

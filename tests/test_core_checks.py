@@ -40,6 +40,7 @@ CALLS = {
     sampling.farthest_point_sampling: ((CLOUD, 16), [0]),
     sampling.farthest_point_sampling_naive: ((CLOUD, 16), [0]),
     sampling.count_distinct: ((CLOUD,), [0]),
+    sampling.power_of_two_unit: ((CLOUD,), [0]),
     sampling.thin_by_radius: ((CLOUD, 50), [0]),
     sampling.first_unique_rows: ((DISTANCES, 8), [0]),
     sampling.prepare_input: ((CLOUD, 64), [0]),

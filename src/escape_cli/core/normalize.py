@@ -18,6 +18,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points, as_vector
 from escape_cli.core.params import as_count, as_number
+from escape_cli.core.sampling import power_of_two_unit
 from escape_cli.errors import DegenerateGeometryError, EscapeError
 
 __all__ = [
@@ -114,6 +115,8 @@ def cloud_radius(points, quantile: float | None = None) -> float:
     """
     pts = as_points(points, "points", min_points=1)
     centred = pts - pts.mean(axis=0)  # (N, 3)
+    unit = power_of_two_unit(centred)  # exact rescaling: no underflow or overflow of the squares
+    centred = centred * unit
     dist = np.sqrt((centred * centred).sum(axis=1))  # (N,)
     if quantile is None:
         radius = float(np.sqrt(np.mean(dist * dist)))
@@ -122,8 +125,9 @@ def cloud_radius(points, quantile: float | None = None) -> float:
         if not 0.0 < q <= 1.0:
             raise EscapeError(f"radius quantile must be in (0, 1], got {quantile}")
         radius = float(np.quantile(dist, q))
+    radius /= unit
     extent = float(np.abs(pts).max())
-    if not radius > 1e-12 * max(extent, 1e-300):
+    if not radius > 1e-12 * extent:
         raise DegenerateGeometryError(
             f"cloud of {len(pts)} points has zero radius (all points equal): cannot normalise"
         )

@@ -22,6 +22,21 @@ except ImportError:  # pragma: no cover - a build without it uses the numpy path
 TIE_RTOL = 1e-9
 
 
+def power_of_two_unit(points) -> float:
+    """2**-e for the exponent e of the largest |coordinate| (1 for an all-zero cloud), within 2**±1000.
+
+    Multiplying by it is exact (a power of two), so results computed on the scaled
+    points are those computed on the points, bit for bit, except that squares and
+    sums of squares can neither underflow (a cloud 1e-300 across) nor overflow.
+    """
+    points = as_points(points, "points", min_points=0)
+    largest = float(np.abs(points).max()) if len(points) else 0.0
+    if largest == 0.0:
+        return 1.0
+    exponent = -int(np.frexp(largest)[1])
+    return float(np.ldexp(1.0, min(max(exponent, -1000), 1000)))  # 2**1074 would overflow (subnormal clouds)
+
+
 def farthest_from_centroid(points: np.ndarray) -> int:
     """Index of the point farthest from the centroid (ties: lowest index).
 
@@ -62,6 +77,7 @@ def farthest_point_sampling(points, count: int, start: int | None = None) -> np.
     n = len(pts)
     if count > n:
         raise PointCloudError(f"cannot choose {count} points from a cloud of {n}")
+    pts = pts * power_of_two_unit(pts)  # the same choices, at any scale (no squared distance underflows)
     if _kernels is not None:
         return _fps_compiled(pts, count, start)
     if count <= _LOOP_COUNT or n <= _LOOP_POINTS:  # a few choices (anchors) or a tiny cloud: the plain loop
@@ -340,10 +356,14 @@ def _update(dist2, b_max, x, y, z, b_centre, b_radius, g_centre, g_radius, q, sl
     b_max[hit] = lower.max(axis=1)
 
 
-def count_distinct(points: np.ndarray, decimals: int = 12) -> int:
-    """Number of distinct points (coordinates compared after rounding)."""
+def count_distinct(points: np.ndarray) -> int:
+    """Number of distinct points: rows that differ in any coordinate (-0.0 equals 0.0).
+
+    Exact, so at any scale: a cloud 1e-15 across has as many distinct points as the
+    same cloud in metres (a rounding to fixed decimals would merge them all).
+    """
     points = as_points(points, "points", min_points=0)
-    return len(_first_of_each_row(np.round(points, decimals)))
+    return len(_first_of_each_row(points))
 
 
 def first_unique_rows(values, columns: int) -> np.ndarray:
