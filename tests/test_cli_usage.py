@@ -78,6 +78,7 @@ USAGE_ERRORS = [
     (["anchors", "s.ply", "-o", "anchors"], "cannot tell the format of anchors (no extension); use --format"),
     (["complete", "s.ply", "-o", "o.ply", "--shard", "3/2"], "--shard: must be I/N with 0 <= I < N"),
     (["eval", "--root", "d", "--split", "bogus"], "--split: must be train, val or test"),
+    (["eval", "--root", "d", "--reference", "refs"], "--reference: only for --dataset kitti"),
     (["train", "--data", "d", "--out", "r", "--config", "bogus"], "--config: unknown config 'bogus'"),
     (["train", "--data", "d", "--out", "r", "--device", "bogus"], "--device: unknown device 'bogus'"),
 ]
@@ -111,6 +112,7 @@ def test_usage_error_is_one_line_with_exit_code_2(tmp_path, monkeypatch, argv, e
         (["dataset", "info", "missing"], "missing"),
         (["eval", "--dataset", "pair", "--root", "missing"], "missing is not a folder"),
         (["eval", "--dataset", "pairs", "--root", "missing"], "missing is not a folder"),
+        (["eval", "--dataset", "kitti", "--root", "missing", "--reference", "refs/"], "--reference refs: no such folder"),
     ],
 )
 def test_data_error_is_one_line_with_exit_code_1(tmp_path, monkeypatch, argv, expected):

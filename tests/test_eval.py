@@ -92,8 +92,69 @@ def test_kitti_fidelity_and_mmd(realdata_dir, tiny_model, tmp_path):
     report = json.loads((tmp_path / "k.json").read_text())
     assert len(report["cars"]) == 6
     for car in report["cars"]:
-        assert car["metrics"]["input/fidelity_x1000"] == pytest.approx(0.0, abs=1e-9)
-        assert car["metrics"]["escape/mmd_cd_l2_x1000"] > 0
+        assert "input/fidelity_x1000" not in car["metrics"]  # the copy predicts no point
+        assert car["metrics"]["escape/fidelity_x1000"] > 0  # the predicted points alone
+        assert car["metrics"]["escape/mmd_cd_l2_x1000"] > 0 and car["metrics"]["input/mmd_cd_l2_x1000"] > 0
+
+
+BOX = [[0, 0, 0], [0, 0, 1], [2, 0, 1], [2, 0, 0], [0, 1, 0], [0, 1, 1], [2, 1, 1], [2, 1, 0]]  # PCN corner order
+
+
+@pytest.fixture
+def kitti_root(tmp_path, rng):
+    """A KITTI layout of two cars: one of 400 points, one of 40 (a far, sparse car)."""
+    root = tmp_path / "kitti"
+    (root / "cars").mkdir(parents=True)
+    (root / "bboxes").mkdir()
+    for name, n in (("near", 400), ("far", 40)):
+        write_points(root / "cars" / f"{name}.pcd", rng.uniform(0, 1, size=(n, 3)) * [2.0, 1.0, 0.1])
+        np.savetxt(root / "bboxes" / f"{name}.txt", np.array(BOX, float))
+    return root
+
+
+def test_kitti_without_reference_says_what_it_cannot_score(kitti_root, tiny_model, tmp_path):
+    res = run_escape("eval", "--dataset", "kitti", "--root", kitti_root, "--model", tiny_model, "--json-out", tmp_path / "k.json")
+    assert res.exit_code == 0, res.stderr
+    warnings = [line for line in res.stderr_lines if line.startswith("escape: WARNING: ")]
+    assert "no --reference folder of complete cars: MMD is not scored, nor is the input copy" in warnings[0]
+    assert all(line.startswith(("escape: WARNING: far: ", "escape: WARNING: near: ")) for line in warnings[1:]), warnings
+    report = json.loads((tmp_path / "k.json").read_text())
+    for car in report["cars"]:
+        assert list(car["metrics"]) == ["escape/fidelity_x1000"]
+        assert car["metrics"]["escape/fidelity_x1000"] > 0  # the observed points merged in would make it 0
+
+
+def test_kitti_fidelity_leaves_the_observed_points_out(kitti_root, tiny_model):
+    from escape_cli.core.metrics import fidelity_naive
+    from escape_cli.evaluation import evaluate_kitti
+    from escape_cli.pipeline import complete
+
+    outputs = []
+
+    def completer(points):
+        outputs.append((points, complete(points, str(tiny_model), output_points=1280)))
+        return outputs[-1][1]
+
+    report = evaluate_kitti(kitti_root, {"escape": completer})
+    for car, (scan, result) in zip(report["cars"], outputs):
+        assert result.is_observed.any()
+        expected = 1000 * fidelity_naive(scan, result.points[~result.is_observed])
+        assert car["metrics"]["escape/fidelity_x1000"] == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("reference", ["missing", "file"])
+def test_kitti_reference_that_is_no_folder_is_one_line_before_any_work(kitti_root, tiny_model, tmp_path, monkeypatch, reference):
+    def no_work(*args, **kwargs):
+        raise AssertionError("the model was loaded before --reference was checked")
+
+    monkeypatch.setattr("escape_cli.inference.load_model", no_work)
+    path = tmp_path / "refs"
+    if reference == "file":
+        path.write_text("not a folder")
+    res = run_escape("eval", "--dataset", "kitti", "--root", kitti_root, "--model", tiny_model, "--reference", path)
+    assert res.exit_code == 1
+    expected = "no such folder" if reference == "missing" else "is a file; give the folder of complete reference cars"
+    assert len(res.stderr_lines) == 1 and f"escape: error: --reference {path}" in res.stderr and expected in res.stderr, res.stderr
 
 
 def test_json_report_is_not_overwritten_without_flag(tiny_tree, tiny_model, tmp_path):

@@ -23,7 +23,7 @@ METRIC_DEFINITIONS = {
     "pred_to_gt_x1000": "1000 * mean_x min_y ||x-y||, x in the output, y in the truth (precision half of CD-L1)",
     "gt_to_pred_x1000": "1000 * mean_y min_x ||y-x|| (recall half of CD-L1)",
     "ratio_to_input": "CD-L1(output, truth) / CD-L1(input, truth); pairs: the mean of the per-pair ratios",
-    "fidelity_x1000": "1000 * mean over input points of the distance to the nearest output point",
+    "fidelity_x1000": "1000 * mean over input points of the distance to the nearest predicted output point (the observed points merged into the output would make it 0)",
     "mmd_cd_l2_x1000": "1000 * min over reference cars of CD-L2(output, reference)",
 }
 
@@ -320,8 +320,13 @@ def evaluate_kitti(
 ) -> dict:
     """Fidelity and MMD on real LiDAR car crops, normalised by their boxes (PCN/PoinTr way).
 
-    With `rotate`, each car is also turned about the box's up axis by a random angle
-    (a vehicle's realistic motion), as in the paper's KITTI table.
+    A completer returns the (M, 3) completion, or a `pipeline.Completion` (anything
+    with `points` and `is_observed`): Fidelity is then measured on its predicted
+    points alone, since the observed points merged into the output would make it 0,
+    and it is not scored for a completer that predicts no point (the input copy). MMD
+    (on the whole output) needs `reference`. With `rotate`, each car is also turned
+    about the box's up axis by a random angle (a vehicle's realistic motion), as in the
+    paper's KITTI table. Log lines of a car's completion name the car.
     """
     from escape_cli.io import read_points
     from escape_cli.core.metrics import chamfer_l2, fidelity
@@ -340,8 +345,11 @@ def evaluate_kitti(
         for prefix, rotation in poses.items():
             for name, completer in completers.items():
                 rotated_input = car @ rotation.T
-                output = completer(rotated_input) @ rotation  # back to the box frame for MMD
-                metrics[f"{prefix}{name}/fidelity_x1000"] = 1000 * fidelity(car, output)
+                with _logged_about(car_path.stem):
+                    output, predicted = _output_and_predicted(completer(rotated_input))
+                output, predicted = output @ rotation, predicted @ rotation  # back to the box frame for MMD
+                if len(predicted):
+                    metrics[f"{prefix}{name}/fidelity_x1000"] = 1000 * fidelity(car, predicted)
                 if reference:
                     metrics[f"{prefix}{name}/mmd_cd_l2_x1000"] = 1000 * min(chamfer_l2(output, ref) for ref in reference)
                 if save_dir is not None:
@@ -354,3 +362,34 @@ def evaluate_kitti(
     keys = records[0]["metrics"].keys()
     average = {f"{k}_mean": float(np.mean([r["metrics"][k] for r in records])) for k in keys}
     return {"cars": records, "average": average}
+
+
+def _output_and_predicted(output) -> tuple[np.ndarray, np.ndarray]:
+    """A completer's whole (M, 3) output and its (P, 3) predicted points (all of a bare array)."""
+    if hasattr(output, "is_observed"):
+        points = np.asarray(output.points, dtype=np.float64)
+        return points, points[~np.asarray(output.is_observed, dtype=bool)]
+    points = np.asarray(output, dtype=np.float64)
+    return points, points
+
+
+class _logged_about:
+    """``with _logged_about(name):`` the escape log lines emitted within start with ``name: ``."""
+
+    def __init__(self, name: str):
+        self.name = name
+
+    def filter(self, record) -> bool:
+        record.msg = f"{self.name}: {record.msg}"
+        return True
+
+    def __enter__(self):
+        import logging
+
+        logging.getLogger("escape").addFilter(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        import logging
+
+        logging.getLogger("escape").removeFilter(self)

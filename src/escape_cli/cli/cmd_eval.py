@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 from typing import List, Optional
 
 import typer
@@ -65,6 +66,8 @@ def command(
         raise typer.BadParameter("must be train, val or test", param_hint="--split")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
+    if reference is not None:
+        _check_reference_folder(reference, dataset)
     model_path = model if model is not None else default_model_path()
     inputs = [root, reference, model_path, model_path.with_suffix(".json")]
     check_output(json_path, overwrite, inputs=inputs)
@@ -109,6 +112,12 @@ def command(
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}
     else:
         refs = _read_references(reference) if reference else None
+        if refs is None:
+            logging.getLogger("escape").warning(
+                "no --reference folder of complete cars: MMD is not scored, nor is the input copy "
+                "(Fidelity is measured on the predicted points, and the copy predicts none)"
+            )
+        completers = _kitti_completers(net, completers, normalize=normalize, keep_input=keep_input, snap_radius=snap_radius)
         report = evaluate_kitti(root, completers, reference=refs, rotate=rotate, seed=seed, save_dir=save)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **report}
         _print_kitti_table(report, table_stream)
@@ -118,6 +127,31 @@ def command(
         write_output_bytes(json_path, (json.dumps(report, indent=1) + "\n").encode(), overwrite=overwrite)
     if json_lines:
         print(json.dumps(report), flush=True)
+
+
+def _check_reference_folder(folder: Path, dataset: str) -> None:
+    """--reference (KITTI's complete cars) before any work: only for kitti, an existing folder."""
+    from escape_cli.errors import DatasetError
+
+    if dataset != "kitti":
+        raise typer.BadParameter("only for --dataset kitti (a folder of complete reference cars)", param_hint="--reference")
+    if not folder.exists():
+        raise DatasetError(f"--reference {folder}: no such folder (the complete reference cars MMD compares with)")
+    if not folder.is_dir():
+        raise DatasetError(f"--reference {folder} is a file; give the folder of complete reference cars")
+
+
+def _kitti_completers(net, completers: dict, **options) -> dict:
+    """The KITTI completers: escape's returns the whole `Completion`, so that Fidelity can leave out
+    the observed points; the input copy marks all its points observed (it predicts none)."""
+    import numpy as np
+
+    from escape_cli.pipeline import complete
+
+    kitti = {"escape": lambda points: complete(points, net, **options)}
+    if "input" in completers:
+        kitti["input"] = lambda points: SimpleNamespace(points=points, is_observed=np.ones(len(points), dtype=bool))
+    return kitti
 
 
 def _read_references(folder: Path):
