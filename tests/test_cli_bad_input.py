@@ -202,6 +202,17 @@ def case_garbage_npy_for_decode(tmp):
     return ["decode", tmp / "bad.npy", "-a", anchors, "-o", tmp / "o.ply"], "bad.npy: not a .npy file"
 
 
+def case_garbage_npz(tmp):
+    (tmp / "g.npz").write_bytes(bytes(range(256)) * 2)
+    return ["anchors", tmp / "g.npz", "--json"], "g.npz: not a .npz file (no zip archive signature)"
+
+
+def case_decode_residuals_to_npy(tmp):
+    distances, anchors = _encoded(tmp)
+    fields = "ply, pcd, xyz, txt, pts, csv, npz, las, laz, h5"
+    return ["decode", distances, "-a", anchors, "-o", tmp / "o.npy", "--residuals"], f"keeps fields ({fields}); npy holds"
+
+
 def case_missing_npy_for_decode(tmp):
     _, anchors = _encoded(tmp)
     return ["decode", tmp / "none.npy", "-a", anchors, "-o", tmp / "o.ply"], "none.npy: no such file"

@@ -137,6 +137,22 @@ def test_a_cloud_float64_cannot_tell_apart_names_its_distinct_points(tmp_path, r
     assert res.stderr_lines == [f"escape: error: {tmp_path / 'flat.npy'}: the input has 1 distinct points; at least 16 are needed to complete it"]
 
 
+def test_the_residuals_refusal_lists_the_formats_that_keep_them(scan, tmp_path, tiny_model):
+    from escape_cli.formats import FIELD_FORMATS
+
+    res = run_escape("complete", scan, "-o", tmp_path / "o.npy", "--residuals", "--model", tiny_model)
+    assert res.exit_code == 1
+    listed = res.stderr.split("keeps fields (")[1].split(")")[0].split(", ")
+    assert listed == list(FIELD_FORMATS)
+    for fmt in listed:  # and each of them does keep them
+        if fmt == "h5":
+            pytest.importorskip("h5py")
+        out = tmp_path / f"o.{fmt}"
+        done = run_escape("complete", scan, "-o", out, "--residuals", "--model", tiny_model, "--points", "300")
+        assert done.exit_code == 0, (fmt, done.stderr)
+        assert "residual" in read_point_fields(out)[1], fmt
+
+
 def test_corrupt_or_missing_model(scan, tmp_path, tiny_model):
     res = run_escape("complete", scan, "-o", tmp_path / "o.ply", "--model", tmp_path / "none.onnx")
     assert res.exit_code != 0 and len(res.stderr_lines) == 1 and "does not exist" in res.stderr

@@ -301,6 +301,37 @@ def test_metadata_that_disagrees_with_the_network_is_one_line_before_any_scan_is
 # ------------------------------------------------------------------ the machine fails, not escape
 
 
+def test_a_read_only_file_system_is_named(scan, tmp_path, monkeypatch):
+    """As the folder check asks os.access and statvfs, make them say what a read-only mount says."""
+    import escape_cli.io.files as files
+
+    monkeypatch.setattr(files.os, "access", lambda path, mode: False)
+    monkeypatch.setattr(files.os, "statvfs", lambda path: types.SimpleNamespace(f_flag=os.ST_RDONLY))
+    result = run_escape("anchors", scan, "-o", tmp_path / "a.ply")
+    _one_line(result, f"cannot write {tmp_path / 'a.ply'}: {tmp_path} is on a read-only file system")
+
+
+def test_a_file_the_file_system_refuses_to_create_is_said_why(tmp_path):
+    import errno
+
+    from escape_cli.io.files import _why_not_created
+
+    assert _why_not_created(OSError(errno.EROFS, "Read-only file system"), tmp_path) == f"{tmp_path} is on a read-only file system"
+    assert _why_not_created(PermissionError(errno.EACCES, "Permission denied"), tmp_path).startswith(f"{tmp_path} takes no new files")
+    assert _why_not_created(OSError(errno.ENOSPC, "No space left on device"), tmp_path) == "No space left on device"
+
+
+@pytest.mark.skipif(not Path("/proc/self").exists(), reason="needs a /proc file system")
+@pytest.mark.parametrize("command", ["anchors", "complete"])
+def test_an_output_in_proc_says_why_it_cannot_be_written(scan, tiny_model, command):
+    extra = ["--model", tiny_model] if command == "complete" else []
+    result = run_escape(command, scan, "-o", "/proc/out.ply", *extra)
+    assert result.exit_code == 1
+    _one_line(result, "/proc takes no new files (a proc file system)")
+
+
+
+
 @pytest.mark.skipif(not Path("/dev/full").exists(), reason="no /dev/full on this system")
 @pytest.mark.parametrize("extra", [["-o", "-"], ["--json"]])
 def test_full_disk_under_stdout_is_one_line(scan, extra):

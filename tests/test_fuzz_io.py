@@ -168,6 +168,16 @@ def test_garbage_fails_cleanly(garbage, fmt):
     _check_parse(fmt, garbage)
 
 
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.binary(min_size=1, max_size=300))
+def test_garbage_npz_names_npz(garbage):
+    """A damaged .npz is reported as an .npz (a .npy inside one is still read)."""
+    try:
+        cloud_io._parse(garbage, "g.npz", "npz")
+    except EscapeError as err:
+        assert ".npz" in str(err) or ".npy" in str(err) and garbage.startswith(b"\x93NUMPY"), str(err)
+
+
 @FUZZ
 @given(arrays(np.float64, st.tuples(st.integers(1, 30), st.just(3)), elements=st.floats(-1e6, 1e6)),
        st.sampled_from(["xyz", "txt", "pts", "csv"]), st.booleans())

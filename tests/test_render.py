@@ -139,7 +139,7 @@ def test_cli_render_reads_pcn_files(tmp_path):
 
 @pytest.mark.parametrize("make_args, message", [
     (lambda d, c: [str(d / "missing.ply"), "-o", str(d / "o.png")], "missing.ply"),
-    (lambda d, c: [str(c[0]), "-o", str(d / "o.jpg")], "must be a .png"),
+    (lambda d, c: [str(c[0]), "-o", str(d / "o.jpg")], "unknown image format '.jpg' for"),
     (lambda d, c: [str(c[0]), "-o", str(c[0].with_suffix(".png")), "--color-by", "nope"], "no field 'nope'"),
     (lambda d, c: [str(c[1]), "-o", str(d / "o.png"), "--color-by", str(d / "v.npy")], "2000 values for 500 points"),
     (lambda d, c: [str(c[0]), "-o", str(d / "exists.png")], "exists"),

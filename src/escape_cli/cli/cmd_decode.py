@@ -32,6 +32,7 @@ def command(
     import numpy as np
 
     from escape_cli.errors import InputFileError, OutputFileError, PointCloudError
+    from escape_cli.formats import FIELDLESS_FORMATS, residuals_refusal
     from escape_cli.io import display_name, output_format, read_array, read_points, write_points
     from escape_cli.core.checks import as_rows
     from escape_cli.core.reconstruction import reconstruct
@@ -39,8 +40,8 @@ def command(
     if distances_path == "-" and anchors_path == "-":
         raise InputFileError("distances and anchors cannot both come from stdin")
     out_format = output_format(output, fmt)  # an unknown format fails now, not after the work
-    if residuals and out_format == "npy":
-        raise OutputFileError("--residuals needs a ply, pcd, xyz, txt, pts, csv or npz output (npy holds x y z only)")
+    if residuals and out_format in FIELDLESS_FORMATS:
+        raise OutputFileError(residuals_refusal(out_format))
     check_output(output, overwrite, inputs=[distances_path, anchors_path])
 
     # Distances before anchors: in `encode -o - | decode - --anchors A`, A is complete

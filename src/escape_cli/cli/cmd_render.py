@@ -26,13 +26,13 @@ def command(
     overwrite: bool = OVERWRITE,
 ) -> None:
     """Draw clouds side by side (columns) in fixed orthographic views (rows), y up."""
-    from escape_cli.errors import InputFileError, OutputFileError
+    from escape_cli.errors import FormatError, InputFileError
     from escape_cli.io import read_point_fields
     from escape_cli.io.files import write_output_bytes
     from escape_cli.render_png import encode_png, render_clouds
 
-    if output.suffix.lower() != ".png":
-        raise OutputFileError(f"{output}: the output must be a .png file")
+    if output.suffix.lower() != ".png":  # an unknown output format: a usage error, as for the other commands
+        raise FormatError(f"unknown image format '{output.suffix or '(no extension)'}' for {output}; render writes .png")
     check_output(output, overwrite, inputs=[*inputs, *(color_by or [])])
     if color_by and len(color_by) not in (1, len(inputs)):
         raise InputFileError(f"--color-by given {len(color_by)} times for {len(inputs)} inputs; give it once or once per input")

@@ -19,6 +19,7 @@ from escape_cli.errors import (
     about,
     errors_about,
 )
+from escape_cli.formats import FIELDLESS_FORMATS, residuals_refusal
 
 
 @dataclass(frozen=True)
@@ -155,8 +156,8 @@ def outputs_to_write(job: CompletionJob, settings: Settings) -> tuple[str, ...]:
     from escape_cli.io.files import is_stream
 
     out_fmt = output_format(job.output, settings.fmt)
-    if settings.residuals and out_fmt == "npy":
-        raise InputFileError("--residuals needs a ply, pcd, xyz or npz output (npy holds coordinates only)")
+    if settings.residuals and out_fmt in FIELDLESS_FORMATS:
+        raise InputFileError(residuals_refusal(out_fmt))
     todo = []
     for target, fmt in ((job.output, out_fmt), (job.anchors, None)):
         if target is None:

@@ -359,7 +359,7 @@ def _parse(data: bytes, name: str, fmt: str) -> tuple[np.ndarray, Fields]:
         if fmt == "pcd":
             return parse_pcd(data, name)
         if fmt in ("npy", "npz"):
-            return parse_npy(data, name)
+            return parse_npy(data, name, fmt)
         if fmt in ("las", "laz"):
             return parse_las(data, name)
         if fmt == "h5":

@@ -174,6 +174,8 @@ def check_output_directory(directory: str | Path, target: str | Path | None = No
     if not directory.is_dir():
         raise OutputFileError(f"{what}: {directory} is not a directory")
     if not os.access(directory, os.W_OK | os.X_OK):
+        if _read_only(directory):
+            raise OutputFileError(f"{what}: {directory} is on a read-only file system")
         raise OutputFileError(f"{what}: permission denied (directory {directory})")
 
 
@@ -386,12 +388,9 @@ def _create_temp_file(target: Path, what: str | None = None) -> Path:
         except FileExistsError:
             interrupts.untrack(temp)
             continue
-        except PermissionError:
-            interrupts.untrack(temp)
-            raise OutputFileError(f"{what}: permission denied") from None
         except OSError as err:
             interrupts.untrack(temp)
-            raise OutputFileError(f"{what}: {err.strerror or err}") from None
+            raise OutputFileError(f"{what}: {_why_not_created(err, target.parent)}") from None
         os.close(fd)
         return temp
     raise OutputFileError(f"{what}: no free temporary name beside it")
@@ -428,6 +427,46 @@ def remove_temporary_files(folder: str | Path, *, pids: Iterable[int] | None = N
             os.unlink(entry.path)
         except OSError:
             pass
+
+
+def _why_not_created(err: OSError, folder: Path) -> str:
+    """Why a file could not be created in `folder` (which exists), in words."""
+    if err.errno == errno.EROFS:
+        return f"{folder} is on a read-only file system"
+    refused_anyway = isinstance(err, PermissionError) and os.access(folder, os.W_OK | os.X_OK)
+    if err.errno == errno.ENOENT or refused_anyway:  # the folder is there and writable: its file system makes no files
+        kind = _file_system_type(folder)
+        return f"{folder} takes no new files" + (f" (a {kind} file system)" if kind else "")
+    if isinstance(err, PermissionError):
+        return "permission denied"
+    return str(err.strerror or err)
+
+
+def _read_only(directory: Path) -> bool:
+    """Whether `directory` lies on a file system mounted read-only."""
+    try:
+        return bool(os.statvfs(directory).f_flag & os.ST_RDONLY)
+    except (AttributeError, OSError):
+        return False
+
+
+def _file_system_type(path: Path) -> str | None:
+    """The type of the file system `path` lies on (Linux: /proc/self/mounts), or None."""
+    try:
+        lines = Path("/proc/self/mounts").read_text().splitlines()
+    except OSError:
+        return None
+    where = os.path.realpath(path)
+    best = None
+    for line in lines:
+        fields = line.split()
+        if len(fields) < 3:
+            continue
+        mount = fields[1].replace("\\040", " ")
+        inside = where == mount or where.startswith(mount.rstrip("/") + "/")
+        if inside and (best is None or len(mount) >= len(best[0])):
+            best = (mount, fields[2])
+    return best[1] if best else None
 
 
 def _write_all(temp: Path, data: bytes, target: Path) -> None:

@@ -67,14 +67,16 @@ def serialize_array(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
-def parse_npy(data: bytes, name: str) -> tuple[np.ndarray, Fields]:
-    """Read a cloud from ``.npy`` or ``.npz`` bytes.
+def parse_npy(data: bytes, name: str, fmt: str = "npy") -> tuple[np.ndarray, Fields]:
+    """Read a cloud from ``.npy`` or ``.npz`` bytes (told apart by their first bytes).
 
     Parameters
     ----------
     data : bytes
     name : str
         The file name, for messages.
+    fmt : str
+        "npy" or "npz": what the file was read as (by its name), for messages.
 
     Returns
     -------
@@ -89,6 +91,8 @@ def parse_npy(data: bytes, name: str) -> tuple[np.ndarray, Fields]:
         Corrupt file, or an array that is not (N, >=3).
     """
     extra: dict[str, np.ndarray] = {}
+    if fmt == "npz" and not (is_npz(data) or is_npy(data)):
+        raise InputFileError(f"{name}: not a .npz file (no zip archive signature)")
     if is_npz(data):
         array, extra = _cloud_from_npz(data, name)
     else:
