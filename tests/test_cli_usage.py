@@ -8,6 +8,8 @@ shows the full usage of every command.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from cli_runner import run_escape
 
@@ -137,3 +139,32 @@ def test_help_still_shows_the_full_usage(command):
     text = result.stdout.decode()
     assert f"Usage: escape {' '.join(command)}".rstrip() in " ".join(text.split())
     assert "--help" in text and len(text.splitlines()) > 5
+
+
+def test_complete_help_names_the_ray_extra(monkeypatch):
+    """rich markup would take `[ray]` for a style and print "needs escape-cli"."""
+    monkeypatch.setenv("COLUMNS", "400")  # each option's help on one line of the box
+    text = " ".join(run_escape("complete", "--help").stdout.decode().split())
+    assert "needs escape-cli[ray])" in text
+
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _readme_row(start: str) -> str:
+    return next(line for line in README.read_text().splitlines() if line.startswith(start))
+
+
+def test_readme_points_row_gives_the_shipped_models_ceiling():
+    from escape_cli.inference import default_model_path, max_output_points, read_metadata
+
+    ceiling = max_output_points(read_metadata(default_model_path()))
+    row = _readme_row("| `--points M`")
+    assert f"{ceiling} for the shipped model" in row, row
+
+
+def test_readme_commands_table_lists_every_eval_dataset():
+    line = run_escape("eval", "--root", "r", "--dataset", "bogus").stderr
+    datasets = line.split("must be ")[1].split(" (see")[0].replace(" or ", ", ").split(", ")
+    assert "\\|".join(datasets) in _readme_row("| `escape eval --dataset "), datasets
+

@@ -31,7 +31,7 @@ def command(
     files_from: Optional[str] = typer.Option(None, "--files-from", help="Also complete the files listed in FILE, one path a line ('-': stdin)."),
     shard: Optional[str] = typer.Option(None, "--shard", help="I/N: complete only shard I (0 to N-1) of the sorted inputs."),
     skip_existing: bool = typer.Option(False, "--skip-existing", help="Skip inputs whose outputs exist and read back (resume a batch)."),
-    engine: str = typer.Option("local", "--engine", help="local (worker processes) or ray (Ray Data; needs escape-cli[ray])."),
+    engine: str = typer.Option("local", "--engine", help="local (worker processes) or ray (Ray Data; needs escape-cli\\[ray])."),
     ray_address: Optional[str] = typer.Option(None, "--ray-address", help="Ray cluster to join (e.g. auto); default: start Ray here."),
     fmt: Optional[str] = FORMAT,
     input_format: Optional[str] = INPUT_FORMAT,
