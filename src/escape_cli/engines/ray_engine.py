@@ -64,7 +64,8 @@ def run_ray(jobs: list[CompletionJob], settings: CompletionJob.Settings, *, acto
             yield from _run(ray, jobs, settings, actors, chunk_size)
         finally:
             if own:
-                ray.shutdown()
+                with interrupts.deferred():  # an interrupt now waits: cut short, a shutdown leaves Ray's agents running
+                    ray.shutdown()
 
 
 def _abandon(ray, own: bool, jobs: list[CompletionJob]) -> None:
@@ -72,7 +73,7 @@ def _abandon(ray, own: bool, jobs: list[CompletionJob]) -> None:
     then remove the temporary files of outputs that actors were writing (any process's: actors' ids are Ray's)."""
     from escape_cli.io.files import remove_temporary_files
 
-    if own:
+    if own and ray.is_initialized():
         saved = _silence_stderr()  # Ray's native code reports the actors it loses there while it stops
         try:
             ray.shutdown()
