@@ -77,3 +77,17 @@ def about(name: str, err: EscapeError) -> EscapeError:
     if str(err).startswith(f"{name}:"):
         return err
     return type(err)(f"{name}: {err}")
+
+
+def one_line(text: str) -> str:
+    """`text` as one printable line: newlines, escape sequences and other control characters escaped."""
+    out = []
+    for char in str(text):
+        if char.isprintable():
+            out.append(char)
+        elif char in "\n\r\t":
+            out.append({"\n": "\\n", "\r": "\\r", "\t": "\\t"}[char])
+        else:
+            code = ord(char)
+            out.append(f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}")
+    return "".join(out)

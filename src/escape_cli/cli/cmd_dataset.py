@@ -127,7 +127,7 @@ def from_shapes(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from escape_cli.cli.main import one_line
+    from escape_cli.errors import one_line
     from escape_cli.data.from_shapes import METADATA_FILE, ShapesConfig, build_from_shapes, check_shapes_config, find_shapes
     from escape_cli.data.synth import prepare_output
     from escape_cli.errors import DatasetError

@@ -40,7 +40,7 @@ from escape_cli.cli import (
     cmd_render,
     cmd_train,
 )
-from escape_cli.errors import EscapeError
+from escape_cli.errors import EscapeError, one_line
 
 app = typer.Typer(
     name="escape",
@@ -190,18 +190,6 @@ def _shown(value) -> str:
         return repr(value)
 
 
-def one_line(text: str) -> str:
-    """`text` as one printable line: newlines, escape sequences and other control characters escaped."""
-    out = []
-    for char in str(text):
-        if char.isprintable():
-            out.append(char)
-        elif char in "\n\r\t":
-            out.append({"\n": "\\n", "\r": "\\r", "\t": "\\t"}[char])
-        else:
-            code = ord(char)
-            out.append(f"\\x{code:02x}" if code < 0x100 else f"\\u{code:04x}")
-    return "".join(out)
 
 
 def main() -> None:
