@@ -24,10 +24,14 @@ find "$work/src" -name "*.so" -delete  # the editable install's build of the ker
 "$work/build-env/bin/pip" install --quiet --upgrade pip
 "$work/build-env/bin/pip" wheel --quiet --no-deps -w "$work/dist" "$work/src"
 wheel=$(ls "$work"/dist/escape_cli-*.whl)
-"$PYTHON" - "$wheel" <<'EOF' || fail "the wheel lacks the model or the compiled kernels"
+"$PYTHON" - "$wheel" src/escape_cli/models <<'EOF' || fail "the wheel lacks a packaged model or the compiled kernels"
 import sys, zipfile
+from pathlib import Path
 names = set(zipfile.ZipFile(sys.argv[1]).namelist())
-missing = [n for n in ("escape_cli/models/escape-small.onnx", "escape_cli/models/escape-small.json") if n not in names]
+models = sorted(Path(sys.argv[2]).glob("escape-*.onnx"))  # every packaged model of the checkout, with its metadata
+wanted = ["escape_cli/models/escape-small.onnx"] + [f"escape_cli/models/{p.name}" for p in models]
+wanted += [n[: -len(".onnx")] + ".json" for n in wanted]
+missing = sorted({n for n in wanted if n not in names})
 if not any(n.startswith("escape_cli/core/_kernels") and n.endswith((".so", ".pyd")) for n in names):
     missing.append("escape_cli/core/_kernels (the compiled kernels: is a C compiler installed?)")
 sys.exit(f"missing from the wheel: {missing}" if missing else 0)
@@ -69,6 +73,14 @@ assert read_points(Path(sys.argv[1]) / "car.laz").shape == (4096, 3)
 assert "torch" not in sys.modules
 EOF
 say "escape complete works with no --model (PLY and LAZ out)"
+for model in src/escape_cli/models/escape-*.onnx; do  # each packaged model by its name, from the installed package
+    name=$(basename "$model" .onnx); name=${name#escape-}
+    (cd "$work" && env -u ESCAPE_MODEL "$bin/escape" -q complete "$repo/examples/chair.pcd" -o "$out/chair-$name.ply" --model "$name") \
+        || fail "escape complete --model $name"
+    help=$(cd "$work" && COLUMNS=250 "$bin/escape" complete --help)
+    [[ "$help" == *"A packaged model ("*"$name"* ]] || fail "escape complete --help does not list $name"
+done
+say "escape complete --model NAME works for every packaged model: $(cd src/escape_cli/models && ls escape-*.onnx | tr '\n' ' ')"
 
 # 5. the jobs of the extras say which extra to install, in one line
 if message=$(cd "$work" && "$bin/escape" dataset synth --out "$out/synth" --train 1 2>&1); then

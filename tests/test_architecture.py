@@ -16,6 +16,7 @@ LAYERS = {
     "escape_cli.formats": 0,
     "escape_cli.interrupts": 0,
     "escape_cli.extras": 1,
+    "escape_cli.packaged_models": 1,
     "escape_cli.core": 1,
     "escape_cli.io": 2,
     "escape_cli.data": 3,

@@ -7,15 +7,14 @@ import json
 import os
 import threading
 from concurrent.futures import Future
-from importlib import resources
 from pathlib import Path
 
+import escape_cli.packaged_models as packaged_models
 from escape_cli.core.settings import AnchorSettings
 from escape_cli.errors import EscapeError, ModelError
 from escape_cli.model_check import check_against_network, read_signature
 
-DEFAULT_MODEL_NAME = "escape-small.onnx"
-MODEL_ENV = "ESCAPE_MODEL"
+MODEL_ENV = packaged_models.MODEL_ENV
 SPINNING = False
 """Whether onnxruntime's idle threads spin after a forward pass. Measured on 2 busy cores
 (chair, 2 threads): spinning made the forward 2.1x slower (378 vs 177 ms) and the numpy
@@ -25,17 +24,16 @@ stages after it 1.5x slower, as the spinning thread takes the core they need."""
 def default_model_path() -> Path:
     """The model `escape complete` uses without `--model`.
 
-    $ESCAPE_MODEL when set, else the model shipped inside the package
-    (``escape_cli/models/escape-small.onnx``, package data found with `importlib.resources`).
+    $ESCAPE_MODEL when set (a path or a packaged model's name), else the packaged
+    model ``small`` (``escape_cli/models/escape-small.onnx``, package data): see
+    `escape_cli.packaged_models`.
     """
-    if os.environ.get(MODEL_ENV):
-        return Path(os.environ[MODEL_ENV])
-    resource = resources.files("escape_cli") / "models" / DEFAULT_MODEL_NAME
-    if not isinstance(resource, Path):  # a package imported from a zip: onnxruntime needs a real file
-        raise ModelError(f"the shipped model is not on the file system ({resource}); pass --model or set {MODEL_ENV}")
-    if not resource.is_file():
-        raise ModelError(f"no model found: {resource} is missing (pass --model or set {MODEL_ENV})")
-    return resource
+    return packaged_models.resolve(None)
+
+
+def model_path(model: str | os.PathLike | None) -> Path:
+    """The model file a `--model` value names: a path, a packaged model's name (``synth``), or None for the default."""
+    return packaged_models.resolve(model)
 
 
 class CompletionModel:
@@ -278,22 +276,22 @@ def _read_model_bytes(path: Path) -> bytes:
 
 
 def load_model(path: str | None = None, threads: int = 0) -> CompletionModel:
-    """Load (and cache) a model; None means the default model.
+    """Load (and cache) a model: a model file, a packaged model's name (``"synth"``), or None for the default.
 
     Returns once the metadata is checked and the session is built, or, when a load is
     under way (`preload_model`), joins it: it is then waited for when first used
     (`CompletionModel.session`), and a corrupt file is reported there; a load under way
     is joined, not repeated. Failed loads are not cached.
     """
-    model_path = Path(path) if path else default_model_path()
-    key = (str(model_path), threads)
+    resolved = model_path(path or None)
+    key = (str(resolved), threads)
     with _MODELS_LOCK:
         model = _MODELS.get(key)
         if model is not None and model.failed:  # a background load that failed: try again
             del _MODELS[key]
             model = None
     if model is None:
-        model = CompletionModel(model_path, threads)
+        model = CompletionModel(resolved, threads)
         with _MODELS_LOCK:
             model = _MODELS.setdefault(key, model)
     return model
@@ -310,12 +308,12 @@ def preload_model(path: str | None = None, threads: int = 0) -> Future:
     onnxruntime refuses) are left in the future: `load_model` reports them.
     """
     try:
-        model_path = Path(path) if path else default_model_path()
+        resolved = model_path(path or None)
     except EscapeError as err:
         failed: Future = Future()
         failed.set_exception(err)
         return failed
-    return _session_loading(str(model_path), threads, background=True)
+    return _session_loading(str(resolved), threads, background=True)
 
 
 _MODELS: dict = {}  # (path, threads) -> CompletionModel

@@ -84,7 +84,8 @@ def complete(
     Parameters
     ----------
     points : (N, 3) float, the partial scan, N >= 16 distinct points, any pose.
-    model : path to an .onnx model, a loaded `CompletionModel`, or None for the default.
+    model : path to an .onnx model, a packaged model's name (``"small"``, ``"synth"``), a loaded
+        `CompletionModel`, or None for the default.
     normalize : "auto" scales the scan so its radius matches the training partials
         (rotation invariant, exactly inverted afterwards); "none" feeds it as is (for
         data already in PCN units).

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import FORMAT, INPUT_FORMAT, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
+from escape_cli.cli.options import FORMAT, INPUT_FORMAT, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
 
 DEFAULT_POINTS = 16384
 
@@ -16,7 +16,7 @@ DEFAULT_POINTS = 16384
 def command(
     inputs: Optional[List[str]] = typer.Argument(None, help="Partial clouds: files, folders, globs, or '-' for stdin."),
     output: str = typer.Option(..., "--output", "-o", help="Output file (one input), folder (several), or '-'."),
-    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: $ESCAPE_MODEL, else the model shipped in the package)."),
+    model: Optional[str] = MODEL,
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     points: Optional[int] = typer.Option(
         None, "--points", "-n", min=1,
@@ -48,7 +48,7 @@ def command(
     # are imported and the scan is read and prepared.
     inputs = inputs or []
     single = len(inputs) == 1 and files_from is None and (inputs[0] == "-" or Path(inputs[0]).is_file())
-    loading = preload_model(str(model) if model else None) if single else None
+    loading = preload_model(model) if single else None
     try:
         _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
                   workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
@@ -76,11 +76,11 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
         raise typer.BadParameter("give input files, folders or globs, or --files-from FILE", param_hint="INPUTS")
     shard_of = parse_shard(shard)
     points = _checked_points(model, points)
-    check_model(str(model) if model else None, threads=0, wait=not preloading)
+    check_model(model, threads=0, wait=not preloading)
     plan = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, files_from=files_from, shard=shard_of)
     _check_job_outputs(plan.jobs, fmt)
     settings = CompletionJob.Settings(
-        model=str(model) if model else None, normalize=normalize, points=points, keep_input=keep_input,
+        model=model, normalize=normalize, points=points, keep_input=keep_input,
         snap_radius=snap_radius, residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
         input_format=input_format, skip_existing=skip_existing,
     )
@@ -90,11 +90,11 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
         raise EscapeError(f"{failures} of {len(plan.jobs)} file(s) failed")
 
 
-def _checked_points(model: Optional[Path], points: Optional[int]) -> int:
-    """Before any file is read: the model's path and metadata, and --points within what it can produce."""
-    from escape_cli.inference import check_output_points, default_model_path, max_output_points, read_metadata
+def _checked_points(model: Optional[str], points: Optional[int]) -> int:
+    """Before any file is read: the model (a path or a packaged name) and its metadata, and --points within what it can produce."""
+    from escape_cli.inference import check_output_points, max_output_points, model_path, read_metadata
 
-    path = model if model is not None else default_model_path()
+    path = model_path(model)
     meta = read_metadata(path)
     if points is None:
         return min(DEFAULT_POINTS, max_output_points(meta))

@@ -10,7 +10,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import JSON, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS, number_check
+from escape_cli.cli.options import JSON, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS, number_check
 
 
 def command(
@@ -26,7 +26,7 @@ def command(
     noise: float = typer.Option(0.0, "--noise", callback=number_check(minimum=0.0), help="Gaussian noise sigma added to the inputs."),
     drop: float = typer.Option(0.0, "--drop", callback=number_check(minimum=0.0, maximum=0.95), help="Share of input points removed at random."),
     limit: Optional[int] = typer.Option(None, "--limit", min=1, help="At most N objects per category."),
-    model: Optional[Path] = typer.Option(None, "--model", "-m", help="ONNX model (default: the shipped one)."),
+    model: Optional[str] = MODEL,
     baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge observed points into the output."),
     snap_radius: Optional[float] = SNAP_RADIUS,
@@ -55,7 +55,7 @@ def command(
         evaluate_pairs,
         evaluate_pcn,
     )
-    from escape_cli.inference import default_model_path, load_model
+    from escape_cli.inference import load_model, model_path as resolve_model
     from escape_cli.io.files import check_output_folder
     from escape_cli.pipeline import complete
     from escape_cli.core.snap import SNAP_RADIUS as DEFAULT_SNAP_RADIUS
@@ -68,7 +68,7 @@ def command(
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     if reference is not None:
         _check_reference_folder(reference, dataset)
-    model_path = model if model is not None else default_model_path()
+    model_path = resolve_model(model)
     inputs = [root, reference, model_path, model_path.with_suffix(".json")]
     check_output(json_path, overwrite, inputs=inputs)
     if save is not None:

@@ -7,6 +7,7 @@ from typing import Callable, Iterable, Optional
 
 import typer
 
+import escape_cli.packaged_models as packaged_models
 from escape_cli.core.settings import DEFAULTS as ANCHOR_DEFAULTS
 from escape_cli.formats import FORMAT_LIST
 
@@ -37,6 +38,12 @@ FORMAT = typer.Option(
     None, "--format", "-f", help=f"Output file format ({FORMAT_LIST}); default: from the extension."
 )
 JSON = typer.Option(False, "--json", help="Print machine-readable JSON lines on stdout.")
+MODEL = typer.Option(
+    None, "--model", "-m", metavar="NAME|PATH",
+    help=(f"A packaged model ({packaged_models.listing()}) or an exported .onnx file; "
+          f"default: ${packaged_models.MODEL_ENV}, else {packaged_models.DEFAULT}."),
+)
+"""`--model` of the commands that run the network: the packaged names listed from their folder (no model is read)."""
 NORMALIZE_HELP = (
     "auto: each scan is completed in its own frame (centre and size from the scan; any units, mapped back exactly); "
     "none: feed coordinates as they are (only for older models trained in absolute PCN units)."
