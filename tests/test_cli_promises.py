@@ -17,6 +17,7 @@ import types
 import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 from cli_runner import run_escape
 
@@ -555,7 +556,7 @@ def _children(pid: int) -> list[int]:
     return found
 
 
-def _interrupted_at(argv, delay: float, signum=signal.SIGINT, before=None) -> subprocess.CompletedProcess:
+def _interrupted_at(argv, delay: float, signum=signal.SIGINT, before=None, group: bool = True) -> subprocess.CompletedProcess:
     """Run `escape ARGV`; `delay` seconds after its entry point's first instruction, call `before(pid)`
     and send `signum` to its process group (as a terminal's Ctrl-C reaches every process of the job,
     workers included)."""
@@ -572,7 +573,7 @@ def _interrupted_at(argv, delay: float, signum=signal.SIGINT, before=None) -> su
         if before is not None:
             before(process.pid)
         try:
-            os.killpg(process.pid, signum)
+            (os.killpg if group else os.kill)(process.pid, signum)  # or to the command alone, as `kill PID` sends it
         except ProcessLookupError:
             pass
         out, err = process.communicate(timeout=120)  # returns once every process holding the pipes is gone
@@ -642,6 +643,50 @@ def test_an_interrupt_in_a_worker_pool_is_one_line_and_leaves_no_worker(tmp_path
     assert interrupted >= len(moments) - 1  # a fast machine may finish the 24 files within the last moment
     assert workers_seen
     assert not [pid for pid in workers_seen if _alive(pid)]  # none left behind (killed and reaped by the parent)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal handlers from /proc")
+@pytest.mark.parametrize("command", ["from-shapes", "synth"])
+def test_an_interrupt_of_a_dataset_command_with_workers_is_one_line(tmp_path, command):
+    """Ctrl-C at the terminal (the process group) or SIGTERM to the command alone: the workers are
+    killed, nothing half-written stays, and no worker writes on or prints after the one line."""
+    from escape_cli.data.pcn import read_pcd
+
+    if command == "from-shapes":
+        shapes = tmp_path / "shapes"
+        shapes.mkdir()
+        rng = np.random.default_rng(0)
+        for i in range(40):
+            directions = rng.normal(size=(400, 3))
+            np.save(shapes / f"s{i:02d}.npy", directions / np.linalg.norm(directions, axis=1, keepdims=True) * (1, 0.6, 0.4))
+        argv = ["-q", "dataset", "from-shapes", shapes, "--views", "2", "--workers", "2", "-o"]
+    else:
+        pytest.importorskip("open3d")
+        argv = ["-q", "dataset", "synth", "--train", "4", "--views", "2", "--workers", "2", "-o"]
+    workers_seen = []
+
+    def note_workers(pid):
+        workers_seen.extend(c for c in _children(pid) if b"spawn_main" in _cmdline(c))
+
+    interrupted = 0
+    for i, (signum, delay, group) in enumerate([(signal.SIGINT, 2.0, True), (signal.SIGTERM, 3.0, False)]):
+        out = tmp_path / f"out{i}"
+        done = _interrupted_at([*argv, out], delay, signum, before=note_workers, group=group)
+        interrupted += _check_interrupted(done, signum, out, 0)
+        written = sorted(out.rglob("*"))
+        for path in out.rglob("*.pcd"):  # finished files are whole
+            assert len(read_pcd(path)) > 0, path
+        time.sleep(0.5)
+        assert sorted(out.rglob("*")) == written  # no worker goes on writing after the command has ended
+    assert interrupted >= 1
+    assert workers_seen and not [pid for pid in workers_seen if _alive(pid)]
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return b""
 
 
 def _alive(pid: int) -> bool:

@@ -220,3 +220,30 @@ def test_pcn_dataset_indexes_samples(tiny_tree):
     assert sample.model_id == "chair_b" and sample.view == 0 and sample.partial.shape == (32, 3)
     assert isinstance(dataset.refs[0], SampleRef)
     np.testing.assert_array_equal(dataset[2].partial, sample.partial)
+
+
+def test_point_files_are_written_whole_or_not_at_all(tmp_path, monkeypatch):
+    """write_pcd goes through a temporary file that an interrupt would remove (tracked while it exists)."""
+    import escape_cli.interrupts as interrupts
+    from escape_cli.errors import OutputFileError
+    from escape_cli.io import files
+
+    seen = []
+    real_replace = files.os.replace
+
+    def replace(src, dst):
+        seen.append((Path(src).name, set(interrupts._temporary) == {str(src)}))
+        real_replace(src, dst)
+
+    monkeypatch.setattr(files.os, "replace", replace)
+    target = tmp_path / "a" / "00.pcd"
+    write_pcd(target, _cloud(20, 1))
+    write_pcd(target, _cloud(30, 2))  # an existing file is replaced
+    assert len(read_pcd(target)) == 30 and sorted(p.name for p in target.parent.iterdir()) == ["00.pcd"]
+    assert [tracked for _, tracked in seen] == [True, True] and all(name.endswith(".tmp") for name, _ in seen)
+    assert not interrupts._temporary
+    monkeypatch.setattr(files.os, "replace", lambda src, dst: (_ for _ in ()).throw(OSError(28, "No space left on device")))
+    with pytest.raises(OutputFileError, match="cannot write .*00.pcd: No space left on device"):
+        write_pcd(target, _cloud(40, 3))
+    assert len(read_pcd(target)) == 30 and sorted(p.name for p in target.parent.iterdir()) == ["00.pcd"]
+    assert not interrupts._temporary

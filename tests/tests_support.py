@@ -86,3 +86,32 @@ def kernel_or_fallback(request, monkeypatch, module, fallback: str) -> str:
     if request.param == fallback:
         monkeypatch.setattr(module, "_kernels", None)
     return request.param
+
+
+def worker_job(job):
+    """A job for `escape_cli.data.workers.run_in_workers` tests: ``(folder, n, action)``.
+
+    Writes a temporary file in `folder` named as a stopped writer leaves one
+    (`io.files.temporary_name`, this process's id), then: "ok" removes it and returns
+    n * n, "die" exits the process at once, "raise" removes it and raises ValueError,
+    "sleep" prints a line and sleeps.
+    """
+    import os
+    import time
+    from pathlib import Path
+
+    from escape_cli.io.files import temporary_name
+
+    folder, n, action = job
+    temporary = Path(folder) / temporary_name(f"{n}.pcd", os.getpid(), 0)
+    temporary.write_bytes(b"half")
+    if action == "die":
+        os._exit(3)
+    if action == "raise":
+        temporary.unlink()  # as a writer does on an error
+        raise ValueError(f"job {n} failed")
+    if action == "sleep":
+        os.write(2, f"job {n} started\n".encode())  # one write: the workers' lines never interleave
+        time.sleep(120)
+    temporary.unlink()
+    return n * n

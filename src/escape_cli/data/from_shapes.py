@@ -9,15 +9,16 @@ A mesh gives `complete_points` area-uniform surface points and depth renders
 (`cloud_views.SplatScanner`), so that its views occlude like views of a surface.
 
 Each shape draws from its own seed (`shape_seed(seed, category, model_id)`), so the
-point files do not depend on `workers` or on the order jobs run in. Every file is
-written atomically, the complete cloud last: a model folder is whole or absent.
+point files do not depend on `workers` or on the order jobs run in. Every point file
+is written atomically (`pcn.write_pcd`), the complete cloud after the views: a shape
+with a complete cloud has all its views. The workers are `data.workers.run_in_workers`'
+(Ctrl-C and SIGTERM stop them and remove what they were writing).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
 import time
 import zlib
@@ -306,16 +307,6 @@ def _cloud_shape(path: Path, n_views: int, rng: np.random.Generator, config: Sha
     return {"complete": complete, "partials": partials, "kind": "cloud", "note": note, "source_points": len(points)}
 
 
-def _write_atomic(path: Path, points: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write_pcd(tmp, points)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _make_and_write(args: tuple[str, ShapesConfig, ShapeSource, str]) -> dict:
     """Worker: one shape's files; its statistics, or its error."""
     root, config, shape, split = args
@@ -324,8 +315,8 @@ def _make_and_write(args: tuple[str, ShapesConfig, ShapeSource, str]) -> dict:
         rng = np.random.default_rng(shape_seed(config.seed, shape.category, shape.model_id))
         made = make_shape(shape.path, config.views[split], rng, config)
         for view, partial in enumerate(made["partials"]):
-            _write_atomic(partial_path(root, split, shape.category, shape.model_id, view), partial)
-        _write_atomic(complete_path(root, split, shape.category, shape.model_id), made["complete"])
+            write_pcd(partial_path(root, split, shape.category, shape.model_id, view), partial)
+        write_pcd(complete_path(root, split, shape.category, shape.model_id), made["complete"])
     except EscapeError as err:
         return {**identity, "error": str(err)}
     except (ValueError, OSError, MemoryError, np.linalg.LinAlgError) as err:
@@ -335,14 +326,23 @@ def _make_and_write(args: tuple[str, ShapesConfig, ShapeSource, str]) -> dict:
             "partial_points": [len(p) for p in made["partials"]], "coverage": [round(c, 4) for c in coverage]}
 
 
-def _run_jobs(jobs: list, workers: int) -> Iterator[dict]:
-    from escape_cli.data.synth import single_threaded_pool
+def _folders_of(job: tuple[str, ShapesConfig, ShapeSource, str]) -> list[Path]:
+    """The folders one shape's files go into (where a stopped worker may leave a temporary file)."""
+    root, _config, shape, split = job
+    return [partial_path(root, split, shape.category, shape.model_id, 0).parent,
+            complete_path(root, split, shape.category, shape.model_id).parent]
 
-    if workers <= 1:
-        yield from map(_make_and_write, jobs)
-        return
-    with single_threaded_pool(workers) as pool:
-        yield from pool.imap_unordered(_make_and_write, jobs, chunksize=1)
+
+def _worker_died(job: tuple[str, ShapesConfig, ShapeSource, str], how: str) -> dict:
+    _root, _config, shape, split = job
+    return {"path": str(shape.path), "category": shape.category, "model_id": shape.model_id, "split": split,
+            "error": f"{shape.path}: the worker process making it died ({how})"}
+
+
+def _run_jobs(jobs: list, workers: int) -> Iterator[dict]:
+    from escape_cli.data.workers import run_in_workers
+
+    yield from run_in_workers(_make_and_write, jobs, workers, folders_of=_folders_of, on_death=_worker_died)
 
 
 # --------------------------------------------------------------------------- the dataset

@@ -159,7 +159,9 @@ def read_pcd(path: str | Path) -> np.ndarray:
 
 
 def write_pcd(path: str | Path, points: np.ndarray) -> None:
-    """Write points as a binary PCD v0.7 file with float32 x y z (PCN's own format).
+    """Write points as a binary PCD v0.7 file with float32 x y z (PCN's own format), atomically.
+
+    The file is whole or absent, also after Ctrl-C (`io.files.write_file_atomically`).
 
     Parameters
     ----------
@@ -172,9 +174,11 @@ def write_pcd(path: str | Path, points: np.ndarray) -> None:
         "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\n"
         f"COUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA binary\n"
     )
+    from escape_cli.io.files import write_file_atomically
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(header.encode("ascii") + points.tobytes())
+    write_file_atomically(path, header.encode("ascii") + points.tobytes())
 
 
 # --------------------------------------------------------------------------- layout paths

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
-import os
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
@@ -25,7 +23,7 @@ import numpy as np
 
 from escape_cli.version import __version__
 from escape_cli.data.depth_views import DepthCamera, DepthScanner
-from escape_cli.data.pcn import CATEGORIES, SPLIT_FILE, SPLITS, write_model, write_split_file
+from escape_cli.data.pcn import CATEGORIES, SPLIT_FILE, SPLITS, complete_path, partial_path, write_model, write_split_file
 from escape_cli.data.shapes import generate_shape
 from escape_cli.data.surface import sample_outer_surface
 from escape_cli.errors import DatasetError, OutputExistsError
@@ -147,27 +145,18 @@ def _make_and_write(args: tuple[str, SynthConfig, tuple[str, str, int]]) -> dict
             "partial_points": [len(p) for p in obj.partials]}
 
 
-def single_threaded_pool(workers: int):
-    """A spawn pool of `workers` processes whose numeric libraries use one thread each."""
-    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    os.environ.update({k: "1" for k in saved})  # one thread per worker process
-    try:
-        return multiprocessing.get_context("spawn").Pool(workers)
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+def _folders_of(job: tuple[str, SynthConfig, tuple[str, str, int]]) -> list[Path]:
+    """The folders one object's files go into (where a stopped worker may leave a temporary file)."""
+    root, config, (split, synset, index) = job
+    model_id = model_id_for(config.seed, split, synset, index, config.generator)
+    return [partial_path(root, split, synset, model_id, 0).parent, complete_path(root, split, synset, model_id).parent]
 
 
 def _run_jobs(root: Path, config: SynthConfig, workers: int) -> Iterator[dict]:
+    from escape_cli.data.workers import run_in_workers
+
     jobs = [(str(root), config, job) for job in config.jobs()]
-    if workers <= 1:
-        yield from map(_make_and_write, jobs)
-        return
-    with single_threaded_pool(workers) as pool:
-        yield from pool.imap_unordered(_make_and_write, jobs, chunksize=2)
+    yield from run_in_workers(_make_and_write, jobs, workers, folders_of=_folders_of)
 
 
 def prepare_output(root: str | Path, overwrite: bool, extra_files: Sequence[str] = ()) -> Path:

@@ -244,6 +244,34 @@ def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False
         interrupts.untrack(temp)
 
 
+def write_file_atomically(path: str | Path, data: bytes) -> None:
+    """Write `data` to `path` whole or not at all: a temporary file beside it, renamed into place.
+
+    For the many files a command makes in a folder of its own (a dataset's point
+    files): an existing `path` is replaced, none of `write_output_bytes`' checks are
+    made, and the bytes are not synced to disk. The temporary file (`temporary_name`,
+    with this process's id) is removed on an interrupt (`interrupts.track`) and on an
+    error; a process killed mid-write leaves it for `remove_temporary_files`.
+
+    Raises
+    ------
+    OutputFileError
+        The file cannot be created or written (its folder is missing, read-only, full).
+    """
+    target = Path(path)
+    temp = _create_temp_file(target)
+    try:
+        with open(temp, "wb") as handle:
+            handle.write(data)
+        os.replace(temp, target)
+    except OSError as err:
+        raise OutputFileError(f"cannot write {target}: {err.strerror or err}") from None
+    finally:
+        if os.path.lexists(temp):
+            os.unlink(temp)
+        interrupts.untrack(temp)
+
+
 def is_stream(path: str | Path) -> bool:
     """Whether `path` is an existing character device or FIFO (through symlinks).
 
