@@ -142,3 +142,143 @@ def test_third_party_meshes(name, triangles, note):
     mesh = read_mesh(path)
     assert len(mesh.triangles) == triangles and mesh.note == note
     assert np.isfinite(mesh.vertices).all() and _area(mesh) > 0
+
+
+# ------------------------------------------------------------------ files as other software writes them
+
+QUAD_TRIANGLES = [[0, 1, 2], [0, 2, 3]]
+OBJ_VERTICES = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+
+
+@pytest.mark.parametrize("text", [
+    OBJ_VERTICES + "f 1 2 3\nf 1 3 4\n",
+    (OBJ_VERTICES + "f 1 2 3\nf 1 3 4\n").replace("\n", "\r\n"),  # CRLF
+    "\ufeff" + OBJ_VERTICES + "f 1 2 3\nf 1 3 4\n",  # a byte order mark (it hid the first vertex)
+    OBJ_VERTICES + "vn 0 0 1\nf 1//1 2//1 3//1\nf 1//1 3//1 4//1\n",  # v//vn
+    OBJ_VERTICES + "f 1 2 3 # a comment\nf 1 3 4#another\n",
+    OBJ_VERTICES + "f 1 2 \\\n  3\nf 1 3 4\n",  # a statement continued on the next line
+    "f 1 2 3\nf 1 3 4\n" + OBJ_VERTICES,  # faces before vertices (absolute indices)
+    "v 0 0 0\nv 1 0 0\nv 1 1 0\nf -3 -2 -1\nv 0 1 0\nf -4 -2 -1\n",  # relative indices count the vertices so far
+], ids=["plain", "crlf", "bom", "v//vn", "comments", "continued", "faces-first", "relative"])
+def test_obj_as_other_software_writes_it(tmp_path, text):
+    path = tmp_path / "q.obj"
+    path.write_bytes(text.encode("utf-8"))
+    mesh = read_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices, QUAD)
+    assert mesh.triangles.tolist() == QUAD_TRIANGLES
+
+
+@pytest.mark.parametrize("keyword, extra", [("OFF", ""), ("NOFF", " 0 0 1"), ("COFF", " 255 0 0 255"),
+                                            ("CNOFF", " 0 0 1 1 0 0 1"), ("STOFF", " 0.5 0.5")])
+@pytest.mark.parametrize("newline, bom", [("\n", ""), ("\r\n", "\ufeff")], ids=["lf", "crlf-bom"])
+def test_off_variants_line_endings_and_vertex_columns(tmp_path, keyword, extra, newline, bom):
+    lines = [keyword, "4 2 0", *(f"{x} {y} {z}{extra}" for x, y, z in QUAD), "3 0 1 2", "3 0 2 3 1 0 0"]
+    path = tmp_path / "q.off"
+    path.write_bytes((bom + newline.join(lines) + newline).encode("utf-8"))
+    mesh = read_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices, QUAD)
+    assert mesh.triangles.tolist() == QUAD_TRIANGLES
+
+
+def test_binary_off_is_refused_in_words(tmp_path):
+    path = tmp_path / "b.off"
+    path.write_bytes(b"OFF BINARY\n" + struct.pack(">3i", 3, 1, 0) + struct.pack(">9f", 0, 0, 0, 1, 0, 0, 0, 1, 0)
+                     + struct.pack(">5i", 3, 0, 1, 2, 0))
+    with pytest.raises(InputFileError, match=f"^{path}: binary OFF is not read"):
+        read_mesh(path)
+
+
+def test_ascii_stl_with_crlf_and_a_byte_order_mark(tmp_path):
+    facets = "".join("facet normal 0 0 1\nouter loop\n" + "".join(f"vertex {x} {y} {z}\n" for x, y, z in QUAD[tri])
+                     + "endloop\nendfacet\n" for tri in QUAD_TRIANGLES)
+    path = tmp_path / "q.stl"
+    path.write_bytes(("\ufeffsolid q\n" + facets + "endsolid q\n").replace("\n", "\r\n").encode("utf-8"))
+    mesh = read_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices[mesh.triangles], QUAD[QUAD_TRIANGLES])
+
+
+def _ply_file(encoding: str, faces, *, count="uchar", index="int", name="vertex_indices", faces_first=False,
+              extra=(), element="face", more="") -> bytes:
+    """A PLY of QUAD with a face element of list property `name` (`count`, `index` types) and
+    scalar properties `extra` (uchar, after the list), optionally before the vertex element."""
+    order = ">" if encoding == "binary_big_endian" else "<"
+    codes = {"uchar": "u1", "uint8": "u1", "char": "i1", "ushort": "u2", "int": "i4", "uint": "u4", "uint32": "u4", "float": "f4"}
+    vertex = "element vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+    face = (f"element {element} {len(faces)}\nproperty list {count} {index} {name}\n"
+            + "".join(f"property uchar {e}\n" for e in extra))
+    header = f"ply\nformat {encoding} 1.0\ncomment written by a test\n" + (face + vertex if faces_first else vertex + face)
+    header += more + "end_header\n"
+    if encoding == "ascii":
+        vertices = "".join(f"{x} {y} {z}\n" for x, y, z in QUAD).encode()
+        face_rows = "".join(f"{len(f)} {' '.join(map(str, f))}{' 7' * len(extra)}\n" for f in faces).encode()
+    else:
+        vertices = QUAD.astype(order + "f4").tobytes()
+        face_rows = b"".join(np.array(len(f), order + codes[count]).tobytes() + np.asarray(f, order + codes[index]).tobytes()
+                             + bytes([7] * len(extra)) for f in faces)
+    return header.encode() + (face_rows + vertices if faces_first else vertices + face_rows)
+
+
+PLY_ENCODINGS = ["ascii", "binary_little_endian", "binary_big_endian"]
+
+
+@pytest.mark.parametrize("encoding", PLY_ENCODINGS)
+@pytest.mark.parametrize("variant", [
+    {}, {"faces_first": True}, {"name": "vertex_index"}, {"name": "indices"}, {"extra": ("red", "green", "blue")},
+    {"count": "uint8", "index": "uint32"}, {"count": "int", "index": "ushort"}, {"faces_first": True, "extra": ("flags",)},
+], ids=["plain", "faces-first", "vertex_index", "other-name", "extra-properties", "uint8-uint32", "int-ushort",
+        "faces-first-extra"])
+@pytest.mark.parametrize("faces", [QUAD_TRIANGLES, [[0, 1, 2, 3], [0, 1, 2, 3]], [[0, 1, 2], [0, 2, 3, 3]]],
+                         ids=["triangles", "quads", "mixed"])
+def test_ply_faces_as_other_software_writes_them(tmp_path, encoding, variant, faces):
+    path = tmp_path / "q.ply"
+    path.write_bytes(_ply_file(encoding, faces, **variant))
+    assert ply_has_faces(path)
+    mesh = read_mesh(path)
+    np.testing.assert_array_equal(mesh.vertices, QUAD)
+    expected = [[0, 1, 2], [0, 2, 3]] * (2 if faces[0] == [0, 1, 2, 3] else 1)
+    assert mesh.triangles.tolist() == expected  # (the mixed case's [0, 3, 3] is degenerate: dropped)
+
+
+def test_ply_with_crlf_lines(tmp_path):
+    path = tmp_path / "q.ply"
+    path.write_bytes(_ply_file("ascii", QUAD_TRIANGLES).replace(b"\n", b"\r\n"))
+    assert read_mesh(path).triangles.tolist() == QUAD_TRIANGLES
+
+
+@pytest.mark.parametrize("encoding", PLY_ENCODINGS)
+def test_ply_tristrips_beside_an_empty_face_element(tmp_path, encoding):
+    more = "element tristrips 1\nproperty list int int vertex_indices\n"
+    data = _ply_file(encoding, [], more=more)
+    strip = [0, 1, 3, 2]
+    if encoding == "ascii":
+        data += f"{len(strip)} {' '.join(map(str, strip))}\n".encode()
+    else:
+        order = ">" if encoding == "binary_big_endian" else "<"
+        data += np.array([len(strip), *strip], order + "i4").tobytes()
+    path = tmp_path / "s.ply"
+    path.write_bytes(data)
+    mesh = read_mesh(path)
+    assert mesh.note == "tristrips triangulated" and len(mesh.triangles) == 2
+    assert _area(mesh) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("encoding", PLY_ENCODINGS)
+def test_a_negative_list_length_is_an_error_naming_the_file(tmp_path, encoding):
+    data = _ply_file(encoding, [[0, 1, 2], [0, 2, 3]], count="char")
+    if encoding == "ascii":
+        data = data.replace(b"\n3 0 2 3\n", b"\n-1 0 2 3\n")
+    else:
+        data = data.replace(b"\x03" + np.asarray([0, 2, 3], (">" if "big" in encoding else "<") + "i4").tobytes(),
+                            b"\xff" + np.asarray([0, 2, 3], (">" if "big" in encoding else "<") + "i4").tobytes())
+    path = tmp_path / "n.ply"
+    path.write_bytes(data)
+    with pytest.raises(InputFileError, match=f"^{path}: corrupt PLY faces \\(a negative list length in the face element\\)"):
+        read_mesh(path)
+
+
+def test_a_long_ply_header_still_has_its_faces_found(tmp_path):
+    path = tmp_path / "q.ply"
+    path.write_bytes(_ply_file("binary_little_endian", QUAD_TRIANGLES).replace(
+        b"comment written by a test\n", b"".join(b"comment %06d\n" % i for i in range(8000))))  # > 64 KiB of header
+    assert ply_has_faces(path)
+    assert read_mesh(path).triangles.tolist() == QUAD_TRIANGLES

@@ -4,14 +4,20 @@
 triangles. Polygons are split into fans; PLY ``tristrips`` (with -1 restarts) are
 triangulated with alternating winding; degenerate triangles (a repeated vertex) are
 dropped. Only geometry is read: normals, texture coordinates, colours and materials
-are ignored. Errors are `InputFileError` with the file named.
+are ignored. Text files may have CRLF line endings and a byte order mark; OBJ
+comments and backslash continuations, OFF's ST/C/N variants, and PLY faces of either
+byte order, before or after the vertices, beside other properties, with their index
+list named ``vertex_indices``, ``vertex_index`` or alone, are read. Errors are
+`InputFileError` with the file named.
 """
 
 from __future__ import annotations
 
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -19,6 +25,8 @@ from escape_cli.errors import InputFileError
 
 MESH_SUFFIXES = (".obj", ".off", ".stl", ".ply")
 """File endings read as meshes (a PLY without faces is a point cloud)."""
+MAX_PLY_HEADER = 1 << 24
+"""The most bytes `ply_has_faces` reads looking for a PLY header's end."""
 
 
 @dataclass(frozen=True)
@@ -76,9 +84,14 @@ def ply_has_faces(path: str | Path) -> bool:
     from escape_cli.io.ply import _parse_header
 
     path = Path(path)
+    head = b""
     try:
         with path.open("rb") as fh:
-            head = fh.read(1 << 16)
+            while b"end_header" not in head and len(head) < MAX_PLY_HEADER:  # long headers (comments, obj_info)
+                chunk = fh.read(1 << 16)
+                if not chunk:
+                    break
+                head += chunk
     except OSError:
         return False
     if b"end_header" not in head:
@@ -104,6 +117,11 @@ def _checked(vertices: np.ndarray, triangles: np.ndarray, note: str) -> Mesh:
     return Mesh(vertices, triangles, note)
 
 
+def _text(data: bytes) -> str:
+    """A text mesh file's characters: UTF-8 (other bytes replaced), a leading byte order mark dropped."""
+    return data.decode("utf-8-sig", errors="replace")
+
+
 def _fans(polygons: list[list[int]]) -> tuple[np.ndarray, bool]:
     """Triangles of polygons split into fans (first vertex shared); whether any had more than 3."""
     out, split = [], False
@@ -119,10 +137,25 @@ def _fans(polygons: list[list[int]]) -> tuple[np.ndarray, bool]:
 # --------------------------------------------------------------------------- OBJ
 
 
+def _obj_lines(text: str) -> Iterator[str]:
+    """The statements of an OBJ file: comments (from ``#``) cut, lines ending in a backslash joined to the next."""
+    pending = ""
+    for line in text.splitlines():
+        line = line.split("#", 1)[0]
+        stripped = line.rstrip()
+        if stripped.endswith("\\"):
+            pending += stripped[:-1] + " "
+            continue
+        yield pending + line
+        pending = ""
+    if pending:
+        yield pending
+
+
 def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
     vertices: list[tuple[float, float, float]] = []
     polygons: list[list[int]] = []
-    for line in data.decode("utf-8", errors="replace").splitlines():
+    for line in _obj_lines(_text(data)):
         words = line.split()
         if not words:
             continue
@@ -145,15 +178,21 @@ def _parse_obj(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
 # --------------------------------------------------------------------------- OFF
 
 
+_OFF_KEYWORD = re.compile(r"(ST)?C?N?OFF")
+"""The OFF keywords read: texture coordinates (ST), colours (C) and normals (N) follow a vertex's x y z."""
+
+
 def _parse_off(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
-    lines = [ln.split("#")[0].split() for ln in data.decode("ascii", errors="replace").splitlines()]
+    lines = [ln.split("#")[0].split() for ln in _text(data).splitlines()]
     lines = [words for words in lines if words]
-    if not lines or not lines[0][0].upper().startswith(("OFF", "COFF", "NOFF", "CNOFF")):
-        raise InputFileError("not an OFF file (no OFF keyword)")
-    keyword = lines[0][0].upper()
+    keyword = lines[0][0].upper() if lines else ""
     kind = keyword.rstrip("0123456789")
-    if kind not in ("OFF", "COFF", "NOFF", "CNOFF"):
-        raise InputFileError(f"unsupported OFF variant {lines[0][0]!r}")
+    if not _OFF_KEYWORD.fullmatch(kind):
+        if "OFF" in keyword:
+            raise InputFileError(f"unsupported OFF variant {lines[0][0]!r}")
+        raise InputFileError("not an OFF file (no OFF keyword)")
+    if len(lines[0]) > 1 and lines[0][1].upper() == "BINARY":
+        raise InputFileError("binary OFF is not read; convert it to ascii OFF (e.g. with meshlab or trimesh)")
     counts = lines[0][1:] if len(lines[0]) > 1 else lines[1]
     if keyword != kind:  # "OFF490 518 0": ModelNet's missing line break
         counts = [keyword[len(kind):], *lines[0][1:]]
@@ -183,7 +222,7 @@ def _parse_stl(data: bytes) -> tuple[np.ndarray, np.ndarray, str]:
         if 84 + 50 * count == len(data):  # binary (its header may start with "solid" too)
             records = np.frombuffer(data, dtype=_STL_RECORD, count=count, offset=84)
             return _soup(records["v"].astype(np.float64))
-    text = data.decode("ascii", errors="replace")
+    text = _text(data)
     if not text.lstrip().lower().startswith("solid"):
         raise InputFileError("neither ascii STL ('solid') nor binary STL (size does not match its triangle count)")
     coords = [line.split()[1:4] for line in text.splitlines() if line.strip().lower().startswith("vertex")]
@@ -208,14 +247,31 @@ def _parse_ply_mesh(data: bytes, name: str) -> tuple[np.ndarray, np.ndarray, str
     header = _parse_header(data, name)
     try:
         lists = _ply_face_lists(data, header)
-    except (ValueError, IndexError) as err:
+    except (ValueError, IndexError, InputFileError) as err:
         raise InputFileError(f"{name}: corrupt PLY faces ({err})") from None
-    if "face" in lists:
-        triangles, split = _fans(lists["face"])
-        return xyz, triangles, "polygons split into fans" if split else "triangles"
-    if "tristrips" in lists:
+    faces = lists.get("face")
+    if "tristrips" in lists and not any(len(row) >= 3 for row in faces or []):  # (an empty face element beside them)
         return xyz, _strip_triangles(lists["tristrips"]), "tristrips triangulated"
+    if faces is not None:
+        triangles, split = _fans(faces)
+        return xyz, triangles, "polygons split into fans" if split else "triangles"
     raise InputFileError(f"{name}: no face or tristrips element")
+
+
+INDEX_LISTS = ("vertex_indices", "vertex_index")
+"""The names of a PLY face's list of vertex indices (the standard's and a common variant)."""
+
+
+def _index_list(element) -> int | None:
+    """Which property of a face or tristrips element holds its vertex indices (None: none of them).
+
+    The list named `INDEX_LISTS`, else the element's only list property (whatever it is called).
+    """
+    lists = [i for i, prop in enumerate(element.properties) if prop.is_list]
+    named = [i for i in lists if element.properties[i].name in INDEX_LISTS]
+    if named:
+        return named[0]
+    return lists[0] if len(lists) == 1 else None
 
 
 def _strip_triangles(strips: list[list[int]]) -> np.ndarray:
@@ -243,15 +299,18 @@ def _ply_face_lists(data: bytes, header) -> dict[str, list[list[int]]]:
         position = 0
         for element in header.elements:
             rows = []
+            wanted_list = _index_list(element) if element.name in wanted else None
             for _ in range(element.count):
                 row: list[int] = []
-                for prop in element.properties:
+                for k, prop in enumerate(element.properties):
                     if prop.is_list:
                         count = int(tokens[position])
+                        if count < 0:
+                            raise InputFileError(f"a negative list length in the {element.name} element")
                         values = tokens[position + 1 : position + 1 + count]
                         if len(values) < count:
                             raise InputFileError(f"truncated {element.name} element")
-                        if not row and prop.name in ("vertex_indices", "vertex_index"):
+                        if k == wanted_list:
                             row = [int(float(v)) for v in values]
                         position += 1 + count
                     else:
@@ -266,35 +325,41 @@ def _ply_face_lists(data: bytes, header) -> dict[str, list[list[int]]]:
         if not element.has_lists:
             position += element.row_dtype(order).itemsize * element.count
             continue
-        rows, position = _binary_list_rows(data, position, element, order)
+        rows, position = _binary_list_rows(data, position, element, order,
+                                           _index_list(element) if element.name in wanted else None)
         if element.name in wanted:
             out[element.name] = rows
     return out
 
 
-def _binary_list_rows(data: bytes, position: int, element, order: str) -> tuple[list[list[int]], int]:
-    """The vertex-index list of every row of a binary element with list properties, and the end offset."""
+def _binary_list_rows(data: bytes, position: int, element, order: str, wanted: int | None) -> tuple[list[list[int]], int]:
+    """The list of property `wanted` (None: none) of every row of a binary element with list properties, and the end offset."""
     props = element.properties
-    if len(props) == 1 and element.count > 1:  # fast path: every row a triangle
+    if len(props) == 1 and element.count > 1 and wanted == 0:  # fast path: every row a polygon of one size
         count_dtype, value_dtype = np.dtype(order + props[0].count_type), np.dtype(order + props[0].value_type)
-        row = np.dtype([("n", count_dtype), ("i", value_dtype, 3)])
-        if position + row.itemsize * element.count <= len(data):
-            table = np.frombuffer(data, row, element.count, position)
-            if np.all(table["n"] == 3):
-                return table["i"].astype(np.int64).tolist(), position + row.itemsize * element.count
+        if position + count_dtype.itemsize <= len(data):
+            (first,) = np.frombuffer(data, count_dtype, 1, position)
+            if first == int(first) and 0 < first <= 1024:
+                row = np.dtype([("n", count_dtype), ("i", value_dtype, int(first))])
+                if position + row.itemsize * element.count <= len(data):
+                    table = np.frombuffer(data, row, element.count, position)
+                    if np.all(table["n"] == first):
+                        return table["i"].astype(np.int64).tolist(), position + row.itemsize * element.count
     rows = []
     for _ in range(element.count):
         indices: list[int] = []
-        for prop in props:
+        for k, prop in enumerate(props):
             if not prop.is_list:
                 position += np.dtype(prop.value_type).itemsize
                 continue
             count_dtype, value_dtype = np.dtype(order + prop.count_type), np.dtype(order + prop.value_type)
             (count,) = np.frombuffer(data, count_dtype, 1, position)
+            if count < 0:
+                raise InputFileError(f"a negative list length in the {element.name} element")
             position += count_dtype.itemsize
             values = np.frombuffer(data, value_dtype, int(count), position)
             position += value_dtype.itemsize * int(count)
-            if not indices and prop.name in ("vertex_indices", "vertex_index"):
+            if k == wanted:
                 indices = values.astype(np.int64).tolist()
         rows.append(indices)
     return rows, position
