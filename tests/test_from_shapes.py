@@ -194,6 +194,35 @@ def test_a_plain_point_z_buffer_would_see_through_but_splats_do_not():
     assert see_through > 0.1
 
 
+@pytest.mark.parametrize("outliers", [0, 12])
+def test_the_z_buffer_is_the_naive_one_exactly(outliers):
+    """Discs tried on their own reach (fast) or on the largest one's (naive): the same buffer, bit for bit."""
+    from escape_cli.data.depth_views import DepthCamera, draw_viewpoint
+
+    rng = np.random.default_rng(outliers)
+    source = np.concatenate([_ellipsoid(rng, 700).astype(np.float64), rng.normal(size=(outliers, 3)) * 0.4])
+    frames = tangent_frames(source)
+    dense, parent = densify(source, frames, 4096, rng)
+    scanner = SplatScanner(source, frames, dense, parent)
+    grids = []
+
+    def keep(method):
+        def run(*args):
+            grids.append(method(scanner, *args))
+            return grids[-1]
+        return run
+
+    for _ in range(4):
+        eye, up = draw_viewpoint(rng, DepthCamera())
+        for method in (SplatScanner._zbuffer, SplatScanner._zbuffer_naive):
+            scanner._zbuffer = keep(method)
+            grids.append(scanner.scan(eye, up))
+        fast_grid, fast_view, naive_grid, naive_view = grids[-4:]
+        np.testing.assert_array_equal(fast_grid, naive_grid)
+        np.testing.assert_array_equal(fast_view, naive_view)
+        assert np.isfinite(fast_grid).sum() > 1000
+
+
 def test_layouts_and_categories(tmp_path):
     rng = np.random.default_rng(0)
     cloud = lambda: rng.normal(size=(300, 3)).astype(np.float32)  # noqa: E731

@@ -201,19 +201,48 @@ class SplatScanner:
         u = cam.width / 2 + self.focal * centres[:, 0] / np.where(front, z, 1)
         v = cam.height / 2 - self.focal * centres[:, 1] / np.where(front, z, 1)
         reach = np.where(front, self.radius * self.focal / np.where(front, z, 1), 0)  # disc radius in pixels
+        zbuf = self._zbuffer(centres, normals, u, v, reach, front)
+        return self.complete[self._seen(basis, eye, normals, zbuf)]
+
+    def _zbuffer(self, centres, normals, u, v, reach, front) -> np.ndarray:
+        """(H * W,) depth of the nearest disc at every pixel (inf where none): `_zbuffer_naive`'s, exactly.
+
+        Each disc is tried on the pixels of its own reach (`_zbuffer_naive` tries every disc on
+        the pixels of the largest, so one isolated point with a wide disc made every view of a
+        16384-point cloud 50x slower and 10x bigger): the discs are grouped by that reach and
+        each group offset as far as a pixel could pass the distance test, plus one pixel;
+        what a disc adds to the buffer is the same, and a minimum does not depend on order.
+        """
         max_reach = int(np.ceil(min(reach.max(initial=0.0), 16.0)))
-        zbuf = np.full(cam.width * cam.height, np.inf)
+        # |offset| - 0.5 <= the pixel centre's distance <= reach + 0.71 (the naive test): |offset| <= reach + 1.21
+        own = np.minimum(np.ceil(reach + 1.21).astype(np.int64) + 1, max_reach)
+        zbuf = np.full(self.camera.width * self.camera.height, np.inf)
+        for r in np.unique(own[front]):
+            rows = np.flatnonzero(front & (own == r))
+            self._splat(zbuf, centres[rows], normals[rows], u[rows], v[rows], reach[rows], self.radius[rows], int(r))
+        return zbuf
+
+    def _zbuffer_naive(self, centres, normals, u, v, reach, front) -> np.ndarray:
+        """The reference of `_zbuffer`: every disc tried on the pixels of the largest reach (at most 16)."""
+        max_reach = int(np.ceil(min(reach.max(initial=0.0), 16.0)))
+        zbuf = np.full(self.camera.width * self.camera.height, np.inf)
+        rows = np.flatnonzero(front)
+        self._splat(zbuf, centres[rows], normals[rows], u[rows], v[rows], reach[rows], self.radius[rows], max_reach)
+        return zbuf
+
+    def _splat(self, zbuf, centres, normals, u, v, reach, radius, max_reach: int) -> None:
+        """Lower `zbuf` to the depth of every disc at each pixel within `max_reach` of its centre that it covers."""
+        cam = self.camera
         steps = np.arange(-max_reach, max_reach + 1)
         dx, dy = (a.reshape(1, -1) for a in np.meshgrid(steps, steps))  # (1, O) pixel offsets
         cx, cy = np.floor(u).astype(np.int64)[:, None] + dx, np.floor(v).astype(np.int64)[:, None] + dy  # (S, O)
-        near = front[:, None] & (np.hypot(cx + 0.5 - u[:, None], cy + 0.5 - v[:, None]) <= reach[:, None] + 0.71)
+        near = np.hypot(cx + 0.5 - u[:, None], cy + 0.5 - v[:, None]) <= reach[:, None] + 0.71
         near &= (cx >= 0) & (cx < cam.width) & (cy >= 0) & (cy < cam.height)
         rows, cols = np.nonzero(near)
         if len(rows):
             pix = np.column_stack([cx[rows, cols], cy[rows, cols]])
-            depth = self._disc_depths(centres[rows], normals[rows], self.radius[rows], pix)
+            depth = self._disc_depths(centres[rows], normals[rows], radius[rows], pix)
             np.minimum.at(zbuf, pix[:, 1] * cam.width + pix[:, 0], depth)
-        return self.complete[self._seen(basis, eye, normals, zbuf)]
 
     def _seen(self, basis, eye, normals, zbuf) -> np.ndarray:
         """Rows of the complete points a depth camera returns: on the front surface, the nearest one per pixel.
