@@ -297,6 +297,17 @@ def test_cli_refusals(tmp_path):
     assert res.exit_code == 2
 
 
+def test_a_source_that_overwrite_would_remove_is_refused(tmp_path):
+    """An earlier dataset's clouds made into a new dataset in its place: --overwrite would delete them first."""
+    old = tmp_path / "ds" / "train" / "complete" / "bolt"
+    old.mkdir(parents=True)
+    np.save(old / "s.npy", _ellipsoid(np.random.default_rng(0)))
+    for source in (old, old / "s.npy", tmp_path / "ds" / "train"):
+        res = run_escape("dataset", "from-shapes", str(source), "-o", str(tmp_path / "ds"), "--overwrite")
+        assert res.exit_code == 1 and len(res.stderr_lines) == 1, res.stderr
+        assert "is inside the output folder" in res.stderr and (old / "s.npy").is_file()
+
+
 def test_train_info_and_eval_take_the_dataset_categories(tmp_path, tiny_model):
     pytest.importorskip("torch")
     rng = np.random.default_rng(2)

@@ -128,7 +128,14 @@ def from_shapes(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     from escape_cli.errors import one_line
-    from escape_cli.data.from_shapes import METADATA_FILE, ShapesConfig, build_from_shapes, check_shapes_config, find_shapes
+    from escape_cli.data.from_shapes import (
+        METADATA_FILE,
+        ShapesConfig,
+        build_from_shapes,
+        check_shapes_config,
+        check_sources_outside,
+        find_shapes,
+    )
     from escape_cli.data.synth import prepare_output
     from escape_cli.errors import DatasetError
     from escape_cli.io.files import check_output_folder
@@ -143,6 +150,7 @@ def from_shapes(
     if missing:
         raise DatasetError(f"{missing[0]}: no such file or folder")
     check_output_folder(out, inputs=[s for s in sources if s.is_dir()])
+    check_sources_outside(out, sources)  # before --overwrite empties the output folder
     find_shapes(sources, category)  # no shape at all: one line before any progress bar
     prepare_output(out, overwrite, extra_files=(METADATA_FILE,))  # a non-empty folder is refused before the work
     quiet = not log.isEnabledFor(logging.WARNING)

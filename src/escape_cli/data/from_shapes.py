@@ -32,7 +32,7 @@ from escape_cli.data.cloud_views import SplatScanner, SplatSettings, densify, ta
 from escape_cli.data.depth_views import DepthCamera
 from escape_cli.data.meshes import MESH_SUFFIXES, ply_has_faces, read_mesh
 from escape_cli.data.pcn import CATEGORIES, SPLITS, complete_path, partial_path, write_pcd, write_split_file
-from escape_cli.errors import DatasetError, DegenerateGeometryError, EscapeError
+from escape_cli.errors import DatasetError, DegenerateGeometryError, EscapeError, OutputFileError
 from escape_cli.formats import CLOUD_SUFFIXES
 from escape_cli.version import __version__
 
@@ -379,6 +379,7 @@ def build_from_shapes(root: str | Path, sources: Sequence[str | Path], config: S
     check_shapes_config(config)
     if workers < 1:
         raise DatasetError(f"workers must be at least 1, got {workers}")
+    check_sources_outside(root, sources)
     shapes, skipped = find_shapes(sources, category)
     splits = assign_splits(shapes, config.val_fraction, config.test_fraction)
     if any(is_mesh_file(s.path) for s in shapes):
@@ -409,6 +410,18 @@ def build_from_shapes(root: str | Path, sources: Sequence[str | Path], config: S
 
 def _category_name(shape: ShapeSource) -> str:
     return CATEGORIES.get(shape.category, shape.category)
+
+
+def check_sources_outside(root: str | Path, sources: Sequence[str | Path]) -> None:
+    """OutputFileError when a source lies in the output folder's split folders, which --overwrite removes first
+    (an earlier dataset's clouds made into a new one in its place)."""
+    out = Path(root).resolve()
+    splits = [out / split for split in SPLITS]
+    for source in sources:
+        resolved = Path(source).resolve()
+        if resolved == out or any(resolved == s or s in resolved.parents for s in splits):
+            raise OutputFileError(f"the source {source} is inside the output folder {root}, whose dataset "
+                                  f"--overwrite removes first; give an output folder outside the sources")
 
 
 def check_shapes_config(config: ShapesConfig) -> None:
