@@ -682,6 +682,47 @@ def test_an_interrupt_of_a_dataset_command_with_workers_is_one_line(tmp_path, co
     assert workers_seen and not [pid for pid in workers_seen if _alive(pid)]
 
 
+@pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs a pseudo-terminal")
+def test_an_interrupt_under_a_progress_bar_gives_the_terminal_its_cursor_back(tmp_path):
+    """On a terminal the dataset commands draw a bar with the cursor hidden: Ctrl-C shows it again
+    and ends the bar's line before the one line."""
+    import pty
+    import select
+
+    shapes = tmp_path / "shapes"
+    shapes.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(30):
+        np.save(shapes / f"s{i:02d}.npy", rng.normal(size=(400, 3)) * (1, 0.6, 0.4))
+    pid, fd = pty.fork()
+    if pid == 0:  # the child: escape on the terminal
+        os.execv(sys.executable, [sys.executable, "-m", "escape_cli", "dataset", "from-shapes", str(shapes),
+                                  "-o", str(tmp_path / "out"), "--views", "2"])
+    screen = b""
+    deadline = time.monotonic() + 60
+    try:
+        while b"/30" not in screen and time.monotonic() < deadline:  # the bar is drawn
+            if select.select([fd], [], [], 0.1)[0]:
+                screen += os.read(fd, 1 << 16)
+        os.kill(pid, signal.SIGINT)
+        while True:
+            try:
+                chunk = os.read(fd, 1 << 16)
+            except OSError:  # the terminal's other end closed: the command has ended
+                break
+            if not chunk:
+                break
+            screen += chunk
+    finally:
+        _, status = os.waitpid(pid, 0)
+        os.close(fd)
+    assert os.waitstatus_to_exitcode(status) == 130, screen[-300:]
+    hidden = screen.rindex(b"\x1b[?25l")  # the bar hides the cursor...
+    assert b"\x1b[?25h" in screen[hidden:], screen[-300:]  # ...and shows it again
+    assert screen.endswith(b"\nescape: interrupted\r\n") or screen.endswith(b"\n\x1b[?25hescape: interrupted\r\n"), screen[-300:]
+    assert not list((tmp_path / "out").rglob("*.tmp"))
+
+
 def _cmdline(pid: int) -> bytes:
     try:
         return Path(f"/proc/{pid}/cmdline").read_bytes()

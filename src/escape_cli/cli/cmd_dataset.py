@@ -7,6 +7,7 @@ from typing import List, Optional
 
 import typer
 
+import escape_cli.interrupts as interrupts
 from escape_cli.cli.options import JSON, OVERWRITE, print_summary
 
 MAX_OBJECTS = 100_000
@@ -78,7 +79,7 @@ def synth(
         TextColumn("[bold]synth[/bold]"), BarColumn(), MofNCompleteColumn(), TextColumn("objects"),
         TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True), disable=quiet,
     )
-    with progress:
+    with progress, interrupts.on_interrupt(progress.stop):  # Ctrl-C: the terminal's cursor back, the bar's line ended
         task = progress.add_task("synth", total=total)
         metadata = synthesize(out, config, workers=workers, overwrite=True,
                               on_object=lambda _result: progress.advance(task))
@@ -171,7 +172,7 @@ def from_shapes(
             print(f"escape: error: {one_line(result['error'])}", file=sys.stderr, flush=True)
         progress.advance(task)
 
-    with progress:
+    with progress, interrupts.on_interrupt(progress.stop):  # Ctrl-C: the terminal's cursor back, the bar's line ended
         metadata = build_from_shapes(out, sources, config, category=category, workers=workers, overwrite=True,
                                      on_shape=finished, on_start=started)
     totals, timing = metadata["totals"], metadata["timing"]
