@@ -656,13 +656,13 @@ def test_an_interrupt_of_a_dataset_command_with_workers_is_one_line(tmp_path, co
         shapes = tmp_path / "shapes"
         shapes.mkdir()
         rng = np.random.default_rng(0)
-        for i in range(40):
+        for i in range(80):  # about 8 s on 2 cores
             directions = rng.normal(size=(400, 3))
             np.save(shapes / f"s{i:02d}.npy", directions / np.linalg.norm(directions, axis=1, keepdims=True) * (1, 0.6, 0.4))
-        argv = ["-q", "dataset", "from-shapes", shapes, "--views", "2", "--workers", "2", "-o"]
+        argv = ["-q", "dataset", "from-shapes", shapes, "--views", "4", "--workers", "2", "-o"]
     else:
         pytest.importorskip("open3d")
-        argv = ["-q", "dataset", "synth", "--train", "4", "--views", "2", "--workers", "2", "-o"]
+        argv = ["-q", "dataset", "synth", "--train", "4", "--views", "2", "--workers", "2", "-o"]  # about 8 s
     workers_seen = []
 
     def note_workers(pid):
