@@ -69,8 +69,9 @@ def test_train_and_export_through_the_cli(tiny_tree, tmp_path):
     assert res.exit_code == 0, res.stderr
     assert res.stdout == b"" and res.stderr == ""
     res = run_escape("-q", "train", "--data", tiny_tree, "--out", tmp_path / "quiet", "--config", "tiny",
-                     "--epochs", "1", "--batch", "2", "--workers", "1", "--val-limit", "4", "--max-steps", "1")
+                     "--epochs", "1", "--batch", "2", "--workers", "1", "--val-limit", "4", "--max-steps", "1", "--val-xyz", "3")
     assert res.exit_code == 0 and res.stdout == b"" and res.stderr == ""  # -q: no progress bar, no summary
+    assert _weights(tmp_path / "quiet" / "last.pt")["options"]["xyz_val_samples"] == 3
     meta = json.loads((tmp_path / "m.json").read_text())
     assert meta["training"]["train_objects"] == 4
     assert meta["frame"] == {"kind": "partial", "rows": 256, "radius": 0.28}
@@ -119,3 +120,186 @@ def test_training_on_two_datasets_joins_their_train_splits(tiny_tree, tmp_path):
     both.run()
     saved = torch.load(tmp_path / "both" / "last.pt", weights_only=False)
     assert TrainOptions.from_dict(saved["options"]).extra_data == (str(other),)
+
+
+def _weights(path):
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def test_bf16_trains_float32_weights_that_export_with_parity(tiny_tree, tmp_path):
+    from escape_cli.nn.export import export_onnx
+    from escape_cli.nn.parity import PARITY_TOLERANCE
+
+    out = tmp_path / "run"
+    trainer = Trainer(options(tiny_tree, out, precision="bf16", max_steps=3))
+    metrics = trainer.run()
+    assert trainer.step == 3 and metrics["val_xyz_cd_l1_x1000"] > 0
+    state = _weights(out / "last.pt")
+    assert state["options"]["precision"] == "bf16"
+    assert json.loads((out / "options.json").read_text())["precision"] == "bf16"
+    assert all(value.dtype == torch.float32 for value in state["model"].values())
+    moments = [t for s in state["optimizer"]["state"].values() for t in s.values()]
+    assert moments and all(t.dtype == torch.float32 for t in moments)
+    meta = export_onnx(out / "best.pt", tmp_path / "m.onnx")  # raises when onnxruntime and torch differ
+    assert meta["onnx_parity_max_abs"] <= PARITY_TOLERANCE
+
+
+def test_training_steps_equal_those_of_the_reference_forms(tiny_tree, tmp_path):
+    """The training-only forms (factored EdgeConv, max, transformer layers, threaded loss, fused AdamW) take the same steps."""
+    import types
+
+    runs = []
+    for name in ("fast", "reference"):
+        trainer = Trainer(options(tiny_tree, tmp_path / name, max_steps=3, xyz_weight=1.0))
+        if name == "reference":  # the network's evaluation mode: its reference forms, no dropout either way
+            trainer.model.train = types.MethodType(lambda self, mode=True: torch.nn.Module.train(self, False), trainer.model)
+        losses = []
+        trainer.run(lambda step, total, loss, metrics: losses.append(loss))
+        runs.append((trainer, losses))
+    (fast, fast_losses), (ref, ref_losses) = runs
+    np.testing.assert_allclose(fast_losses, ref_losses, rtol=1e-5)
+    dim = fast.config.dim
+    for name, value in ref.model.state_dict().items():
+        got, want = fast.model.state_dict()[name].numpy(), value.numpy()
+        if name.endswith("in_proj_bias"):  # the key bias: no effect on the output, a zero gradient up to
+            got, want = np.delete(got, slice(dim, 2 * dim)), np.delete(want, slice(dim, 2 * dim))  # rounding, which Adam scales up
+        np.testing.assert_allclose(got, want, atol=1e-6, err_msg=name)
+    assert fast.optimizer.param_groups[0]["fused"]
+
+
+def test_the_fused_adamw_update_is_that_of_the_per_tensor_loop():
+    """The fused AdamW that training uses takes the steps of the plain per-tensor loop, to rounding."""
+    torch.manual_seed(0)
+    weights = [torch.randn(7, 5), torch.randn(5)]
+    updated = []
+    for fused in (True, False):
+        params = [torch.nn.Parameter(w.clone()) for w in weights]
+        optimizer = torch.optim.AdamW(params, lr=1e-2, weight_decay=0.05, fused=fused, foreach=False if not fused else None)
+        for step in range(5):
+            optimizer.zero_grad()
+            loss = sum(((p - 0.1 * step) ** 3).sum() for p in params)
+            loss.backward()
+            optimizer.step()
+        assert optimizer.param_groups[0]["fused"] is fused
+        updated.append([p.detach().numpy().copy() for p in params])
+    for got, want in zip(*updated):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_resume_keeps_the_runs_precision_and_reads_checkpoints_without_it(tiny_tree, tmp_path):
+    from cli_runner import run_escape
+
+    out = tmp_path / "run"
+    common = ("-q", "train", "--data", tiny_tree, "--out", out, "--config", "tiny", "--batch", "2",
+              "--workers", "1", "--val-limit", "4")
+    assert run_escape(*common, "--precision", "bf16", "--max-steps", "1").exit_code == 0
+    res = run_escape(*common, "--resume", "--max-steps", "2")
+    assert res.exit_code == 0, res.stderr
+    state = _weights(out / "last.pt")
+    assert state["step"] == 2 and state["options"]["precision"] == "bf16"
+    del state["options"]["precision"]  # a checkpoint from before --precision
+    torch.save(state, out / "last.pt")
+    res = run_escape(*common, "--resume", "--max-steps", "3")
+    assert res.exit_code == 0, res.stderr
+    state = _weights(out / "last.pt")
+    assert state["step"] == 3 and state["options"]["precision"] == "fp32"
+    res = run_escape(*common, "--resume", "--precision", "fp16")
+    assert res.exit_code == 2 and "--precision" in res.stderr
+
+
+def test_runs_share_a_cache_folder(tiny_tree, tmp_path, monkeypatch):
+    import escape_cli.nn.samples as samples
+
+    cache = tmp_path / "shared"
+    first = Trainer(options(tiny_tree, tmp_path / "a", cache=str(cache)))
+    assert len(list(cache.glob("prepared-*.npz"))) == 2  # train and val
+    assert not (tmp_path / "a" / "cache").exists()
+
+    def no_preparing(*args, **kw):
+        raise AssertionError("prepared again")
+
+    monkeypatch.setattr(samples, "_run_parallel", no_preparing)
+    second = Trainer(options(tiny_tree, tmp_path / "b", cache=str(cache)))
+    np.testing.assert_array_equal(second.train_data.inputs, first.train_data.inputs)
+    np.testing.assert_array_equal(second.val_data.anchors, first.val_data.anchors)
+    assert json.loads((second.out / "options.json").read_text())["cache"] == str(cache)
+
+
+def test_two_runs_preparing_one_cache_at_once_prepare_it_once(tiny_tree, tmp_path, monkeypatch):
+    import threading
+    import time
+
+    import escape_cli.nn.samples as samples
+
+    prepared = []
+    real = samples._run_parallel
+
+    def slow(func, jobs, workers, label):
+        prepared.append(label)
+        time.sleep(0.3)  # long enough for the other run to arrive meanwhile
+        return real(func, jobs, workers, label)
+
+    monkeypatch.setattr(samples, "_run_parallel", slow)
+    cache = tmp_path / "shared"
+    trainers, errors = {}, []
+
+    def start(name):
+        try:
+            trainers[name] = Trainer(options(tiny_tree, tmp_path / name, cache=str(cache)))
+        except Exception as err:  # pragma: no cover - reported below
+            errors.append(err)
+
+    threads = [threading.Thread(target=start, args=(name,)) for name in ("a", "b")]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert not errors
+    assert sorted(prepared) == ["preparing train", "preparing val"]  # each split once, by one of the runs
+    np.testing.assert_array_equal(trainers["a"].train_data.inputs, trainers["b"].train_data.inputs)
+    assert sorted(p.name for p in cache.iterdir() if not p.name.startswith("prepared-")) == [".lock"]  # no temporaries
+
+
+def test_several_validation_sets_are_logged_by_name_and_scored_together(tiny_tree, tmp_path):
+    from escape_cli.errors import EscapeError
+    from escape_cli.nn.average import average_checkpoints
+    from escape_cli.nn.export import export_onnx
+
+    other = tmp_path / "second"
+    write_tiny_pcn_tree(other, seed=5, objects=1)
+    out = tmp_path / "run"
+    sets = (str(tiny_tree), str(other))
+    trainer = Trainer(options(tiny_tree, out, val_data=sets, max_steps=2, snapshot_every=1, val_every=1))
+    metrics = trainer.run()
+    names = [tiny_tree.name, "second"]
+    assert list(trainer.val_sets) == names and len(trainer.val_sets["second"]) == 2
+    rows = list(csv.DictReader((out / "curve.csv").open()))
+    assert len(rows) == 2
+    kinds = ("val_dmcd_x1000", "val_xyz_cd_l1_x1000", "val_input_cd_l1_x1000")
+    assert {f"{kind}@{name}" for kind in kinds for name in names} | {"val_xyz_cd_l1_x1000"} <= set(rows[-1])
+    ratios = [float(rows[-1][f"val_xyz_cd_l1_x1000@{n}"]) / float(rows[-1][f"val_input_cd_l1_x1000@{n}"]) for n in names]
+    assert float(rows[-1]["val_xyz_cd_l1_x1000"]) == pytest.approx(np.mean(ratios))  # the selection score
+    assert trainer.best == pytest.approx(min(float(r["val_xyz_cd_l1_x1000"]) for r in rows))
+    assert metrics["val_xyz_cd_l1_x1000"] == pytest.approx(float(rows[-1]["val_xyz_cd_l1_x1000"]), rel=1e-6)
+
+    meta = export_onnx(out / "best.pt", tmp_path / "m.onnx")
+    assert f"val_xyz_cd_l1_x1000@{names[1]}" in meta["validation"]
+    averaged = average_checkpoints(sorted((out / "snapshots").glob("step*.pt")), tmp_path / "avg.pt")
+    assert set(averaged["metrics"]) == {"step"} | {k for k in rows[-1] if k.startswith("val_")}
+    export_onnx(tmp_path / "avg.pt", tmp_path / "avg.onnx")
+
+    with pytest.raises(EscapeError, match="validates on"):  # the curve's columns cannot change on resume
+        Trainer(options(tiny_tree, out, max_steps=3), resume=True)
+
+
+def test_default_validation_keeps_its_columns_and_sets_need_distinct_names(tiny_tree, tmp_path):
+    from escape_cli.errors import EscapeError
+    from escape_cli.nn.train import set_names
+
+    Trainer(options(tiny_tree, tmp_path / "run", max_steps=1)).run()
+    header = (tmp_path / "run" / "curve.csv").read_text().splitlines()[0].split(",")
+    assert header == ["step", "epoch", "train_loss_x1000", "val_dmcd_x1000", "val_xyz_cd_l1_x1000",
+                      "val_input_cd_l1_x1000", "lr", "train_seconds"]
+    assert set_names(["/a/modelnet40", "/b/synth"]) == ["modelnet40", "synth"]
+    with pytest.raises(EscapeError, match="two validation sets are named 'synth'"):
+        set_names(["/a/synth", "/b/synth"])

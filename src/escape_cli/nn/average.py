@@ -70,13 +70,15 @@ def average_checkpoints(paths: list[Path], output: Path, overwrite: bool = False
 
 
 def _validate(model, state: dict) -> dict | None:
-    """The run's own validation of `model`, or None when its dataset is gone."""
-    from escape_cli.nn.train import TrainOptions, validate, validation_split
+    """The run's own validation of `model` (every set of its --val-data), or None when a dataset is gone."""
+    from escape_cli.nn.train import TrainOptions, validate_sets, validation_sets
 
     raw = state.get("options", {})
-    if not raw.get("data") or not (Path(raw["data"]) / "val").is_dir():
-        log.warning("not validated: the run's dataset %s is not there", raw.get("data"))
+    roots = raw.get("val_data") or [raw.get("data")]
+    missing = [root for root in roots if not root or not (Path(root) / "val").is_dir()]
+    if missing:
+        log.warning("not validated: the run's dataset %s is not there", missing[0])
         return None
     options = TrainOptions.from_dict(raw)
-    split = validation_split(options, model.config.input_points)
-    return validate(model, split, options, torch.device("cpu"))
+    sets = validation_sets(options, model.config.input_points)
+    return validate_sets(model, sets, options, torch.device("cpu"))

@@ -11,15 +11,41 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from escape_cli.nn.config import ModelConfig
+
+
+_HALF = (torch.bfloat16, torch.float16)
+
+
+def full_precision(x: torch.Tensor) -> torch.Tensor:
+    """A half-precision `x` (autocast's output) as float32; any other `x` as it is (no graph node in the export)."""
+    return x.float() if x.dtype in _HALF else x
+
+
+def linear_fp32(layer: nn.Linear, x: torch.Tensor) -> torch.Tensor:
+    """`layer(x)` in float32 even under autocast: the output layers that write distances.
+
+    Under `torch.autocast` (training with --precision bf16) a Linear would round its
+    output to bfloat16 (8 significant bits, ~2e-3 at a distance of 0.5); these layers are
+    small, so they keep full precision. Without autocast this is `layer(x)`.
+    """
+    if not torch.is_autocast_enabled(x.device.type):
+        return layer(x)
+    with torch.autocast(x.device.type, enabled=False):
+        return layer(full_precision(x))
 
 
 def knn_indices(centres: torch.Tensor, points: torch.Tensor, k: int) -> torch.Tensor:
     """Indices of the k nearest rows of `points` for every centre (Euclidean in feature space).
 
-    centres : (B, P, D), points : (B, N, D) -> (B, P, k) int64
+    centres : (B, P, D), points : (B, N, D) -> (B, P, k) int64. Always in float32: under
+    autocast the product would be rounded to bfloat16 and pick other neighbours.
     """
+    if torch.is_autocast_enabled(points.device.type):
+        with torch.autocast(points.device.type, enabled=False):
+            return knn_indices(full_precision(centres), full_precision(points), k)
     sq = (
         centres.pow(2).sum(-1, keepdim=True)  # (B, P, 1)
         + points.pow(2).sum(-1).unsqueeze(1)  # (B, 1, N)
@@ -34,6 +60,13 @@ def gather_rows(features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     offset = torch.arange(b, device=features.device).view(b, 1, 1) * n
     flat = features.reshape(b * n, c)
     return flat[(index + offset).reshape(-1)].reshape(index.shape[0], index.shape[1], index.shape[2], c)
+
+
+def embed_rows(features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """`gather_rows` as an embedding lookup: the same values, a faster backward on the CPU (training only)."""
+    b, n, c = features.shape
+    offset = torch.arange(b, device=features.device).view(b, 1, 1) * n
+    return F.embedding(index + offset, features.reshape(b * n, c))  # (B, P, k, C)
 
 
 class EdgeGrouping(nn.Module):
@@ -55,10 +88,27 @@ class EdgeGrouping(nn.Module):
         centre_coords = coords[:, : self.centres]  # (B, P, K)
         centre_feats = features[:, : self.centres]  # (B, P, C)
         idx = knn_indices(centre_coords, coords, self.k)  # (B, P, k)
-        neigh = gather_rows(features, idx)  # (B, P, k, C)
-        centre = centre_feats.unsqueeze(2).expand_as(neigh)  # (B, P, k, C)
-        edges = torch.cat([neigh - centre, centre], dim=-1)  # (B, P, k, 2C)
-        return centre_coords, self.mlp(edges).amax(dim=2)  # (B, P, K), (B, P, C')
+        if not self.training:  # the reference form: evaluation and the ONNX export
+            neigh = gather_rows(features, idx)  # (B, P, k, C)
+            centre = centre_feats.unsqueeze(2).expand_as(neigh)  # (B, P, k, C)
+            edges = torch.cat([neigh - centre, centre], dim=-1)  # (B, P, k, 2C)
+            return centre_coords, self.mlp(edges).amax(dim=2)  # (B, P, K), (B, P, C')
+        return centre_coords, self._factored(features, centre_feats, idx)
+
+    def _factored(self, features: torch.Tensor, centre_feats: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """The same edge MLP with its first layer applied before the gather (training).
+
+        W [f_j - f_i, f_i] + b = W_n f_j + (W_c - W_n) f_i + b, with W = [W_n | W_c]: the
+        first layer runs on the N points and P centres instead of the P k edges (k = 16
+        times fewer rows), and no (B, P, k, 2C) edge tensor is built. Equal to the
+        reference form to float rounding (tested with its gradients).
+        """
+        first, rest = self.mlp[0], self.mlp[1:]
+        c = features.shape[-1]
+        w_neigh, w_centre = first.weight[:, :c], first.weight[:, c:]  # (C', C) each
+        neigh = embed_rows(F.linear(features, w_neigh), idx)  # (B, P, k, C')
+        centre = F.linear(centre_feats, w_centre - w_neigh, first.bias)  # (B, P, C')
+        return rest(neigh + centre.unsqueeze(2)).max(dim=2).values  # (B, P, C')
 
 
 class RebuildHead(nn.Module):
@@ -77,8 +127,67 @@ class RebuildHead(nn.Module):
         seeds = self.seeds if seed_index is None else self.seeds[seed_index]  # (F', H)
         q = self.query_proj(torch.cat([query_feats, coarse], dim=-1))  # (B, Q, H)
         h = q.unsqueeze(2) + seeds.view(1, 1, seeds.shape[0], seeds.shape[1])  # (B, Q, F', H)
-        points = coarse.unsqueeze(2) + self.mlp(h)  # (B, Q, F', K)
+        points = coarse.unsqueeze(2) + linear_fp32(self.mlp[-1], self.mlp[:-1](h))  # (B, Q, F', K)
         return points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F', K)
+
+
+def _attention(mha: nn.MultiheadAttention, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
+    """`mha(x, m, m, need_weights=False)[0]` for batch-first inputs, without its layout changes.
+
+    nn.MultiheadAttention works in (L, B, E): a batch-first input is transposed and the
+    packed projection copied twice before the attention, and the output copied back.
+    Here the projections are applied to (B, L, E) as they are and the heads viewed out
+    of them: the same products, the same attention kernel (training only).
+    x : (B, L, E), memory : (B, S, E) or None (self-attention) -> (B, L, E)
+    """
+    b, length, e = x.shape
+    h = mha.num_heads
+    if memory is None:
+        qkv = F.linear(x, mha.in_proj_weight, mha.in_proj_bias)  # (B, L, 3E)
+        q, k, v = qkv.view(b, length, 3, h, e // h).permute(2, 0, 3, 1, 4)  # (B, H, L, E/H) each
+    else:
+        w_q, w_kv = mha.in_proj_weight.split([e, 2 * e])
+        b_q, b_kv = mha.in_proj_bias.split([e, 2 * e])
+        q = F.linear(x, w_q, b_q).view(b, length, h, e // h).transpose(1, 2)  # (B, H, L, E/H)
+        kv = F.linear(memory, w_kv, b_kv)  # (B, S, 2E)
+        k, v = kv.view(b, memory.shape[1], 2, h, e // h).permute(2, 0, 3, 1, 4)  # (B, H, S, E/H) each
+    out = _scaled_dot_product(q, k, v)  # (B, H, L, E/H)
+    return mha.out_proj(out.transpose(1, 2).reshape(b, length, e))  # (B, L, E)
+
+
+def _scaled_dot_product(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """softmax(q k^T / sqrt(d)) v: torch's fused kernel, or for bfloat16 the plain products.
+
+    On the CPU the fused (flash) kernel is slower in bfloat16 than in float32, and at
+    these lengths (128-256) two bfloat16 products with a float32 softmax between them
+    take about half its time. q : (B, H, L, d), k, v : (B, H, S, d) -> (B, H, L, d)
+    """
+    if q.dtype not in _HALF:
+        return F.scaled_dot_product_attention(q, k, v)
+    scores = torch.matmul(q, k.transpose(-1, -2))  # (B, H, L, S)
+    weights = torch.softmax(scores.float() * q.shape[-1] ** -0.5, dim=-1)  # float32
+    return torch.matmul(weights.to(v.dtype), v)
+
+
+def _feed_forward(layer: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    return layer.linear2(F.gelu(layer.linear1(x)))
+
+
+def encoder_layer(layer: nn.TransformerEncoderLayer, x: torch.Tensor) -> torch.Tensor:
+    """`layer(x)` of a pre-norm, batch-first, dropout-free, GELU encoder layer (see `_attention`)."""
+    if not layer.training:
+        return layer(x)
+    x = x + _attention(layer.self_attn, layer.norm1(x))
+    return x + _feed_forward(layer, layer.norm2(x))
+
+
+def decoder_layer(layer: nn.TransformerDecoderLayer, x: torch.Tensor, memory: torch.Tensor) -> torch.Tensor:
+    """`layer(x, memory)` of a pre-norm, batch-first, dropout-free, GELU decoder layer (see `_attention`)."""
+    if not layer.training:
+        return layer(x, memory)
+    x = x + _attention(layer.self_attn, layer.norm1(x))
+    x = x + _attention(layer.multihead_attn, layer.norm2(x), memory)
+    return x + _feed_forward(layer, layer.norm3(x))
 
 
 SOFTPLUS_SHARPNESS = 100.0
@@ -140,19 +249,20 @@ class EscapeNet(nn.Module):
         feats = self.point_embed(partial)  # (B, N, E)
         coords1, feats1 = self.group_fine(partial, feats)  # (B, P1, K), (B, P1, C/2)
         coords2, tokens = self.group_coarse(coords1, feats1)  # (B, P2, K), (B, P2, C)
-        tokens = tokens + self.pos_embed(coords2)  # (B, P2, C)
+        tokens = full_precision(tokens) + self.pos_embed(coords2)  # (B, P2, C): the residual stream in float32
         for layer in self.encoder:
-            tokens = layer(tokens)  # (B, P2, C)
+            tokens = encoder_layer(layer, tokens)  # (B, P2, C)
         global_feat = tokens.amax(dim=1)  # (B, C)
-        predicted = self.global_head(global_feat).view(b, c.predicted_queries, c.anchors)  # (B, Qp, K)
+        hidden = self.global_head[:-1](global_feat)  # (B, 2C)
+        predicted = linear_fp32(self.global_head[-1], hidden).view(b, c.predicted_queries, c.anchors)  # (B, Qp, K)
         observed = partial[:, : c.input_queries]  # (B, Qi, K): FPS rows of the input
         coarse = torch.cat([predicted, observed], dim=1)  # (B, Q, K)
         glob = global_feat.unsqueeze(1).expand(b, coarse.shape[1], global_feat.shape[-1])  # (B, Q, C)
-        queries = self.query_embed(torch.cat([coarse, glob], dim=-1))  # (B, Q, C)
+        queries = full_precision(self.query_embed(torch.cat([coarse, glob], dim=-1)))  # (B, Q, C)
         for layer in self.decoder:
-            queries = layer(queries, tokens)  # (B, Q, C)
+            queries = decoder_layer(layer, queries, tokens)  # (B, Q, C)
         queries = self.norm(queries)
-        coarse = coarse + self.coarse_refine(queries)  # (B, Q, K)
+        coarse = coarse + linear_fp32(self.coarse_refine, queries)  # (B, Q, K)
         fine = self.rebuild(queries, coarse, seed_index)  # (B, Q*F, K)
         if c.positive_output:
             return sharp_softplus(fine), sharp_softplus(coarse)

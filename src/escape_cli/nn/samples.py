@@ -150,11 +150,30 @@ def prepare_split(
         centers=np.stack([r[3] for r in results]).astype(np.float64),
         scales=np.array([r[4] for r in results], dtype=np.float64),
     )
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
-    np.savez(tmp, **split_data.__dict__)
-    tmp.replace(cache)
+    _write_cache(cache, split_data)
     return split_data
+
+
+def _write_cache(cache: Path, split_data: PreparedSplit) -> None:
+    """Write CACHE atomically: a temporary file of this writer's own, then a rename.
+
+    Runs sharing a cache folder may write the same file at once; each writes its own
+    temporary, and a reader sees one whole file or none.
+    """
+    import os
+    import tempfile
+
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{cache.name}.", suffix=".tmp", dir=cache.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **split_data.__dict__)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private
+        os.replace(tmp, cache)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
 
 
 def _run_parallel(func, jobs, workers: int, label: str) -> list:
