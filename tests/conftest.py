@@ -1,4 +1,4 @@
-"""Shared fixtures: seeded synthetic clouds and the third-party scans in ../shared/realdata."""
+"""Shared fixtures: seeded synthetic clouds, the third-party scans in ../shared/realdata and shapes in ../shared/shapes."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 REALDATA = REPO.parent / "shared" / "realdata"
+SHAPES = REPO.parent / "shared" / "shapes"
 
 
 @pytest.fixture
@@ -22,6 +23,14 @@ def realdata_dir() -> Path:
     if not REALDATA.is_dir():
         pytest.skip(f"third-party scans not found at {REALDATA}")
     return REALDATA
+
+
+@pytest.fixture(scope="session")
+def shapes_dir() -> Path:
+    """../shared/shapes (ModelNet40 and the test meshes), or skip the test with a message where it is absent."""
+    if not SHAPES.is_dir():
+        pytest.skip(f"third-party shapes not found at {SHAPES}")
+    return SHAPES
 
 
 def realdata_clouds() -> list:

@@ -81,6 +81,8 @@ USAGE_ERRORS = [
     (["complete", "s.ply", "-o", "o.ply", "--shard", "3/2"], "--shard: must be I/N with 0 <= I < N"),
     (["eval", "--root", "d", "--split", "bogus"], "--split: must be train, val or test"),
     (["eval", "--root", "d", "--reference", "refs"], "--reference: only for --dataset kitti"),
+    (["eval", "--dataset", "kitti", "--root", "d", "--reference-up", "z"], "--reference-up: needs --reference"),
+    (["eval", "--dataset", "kitti", "--root", "d", "--reference", "r", "--reference-up", "w"], "--reference-up: must be x, y or z"),
     (["render", "s.ply", "-o", "r.jpg"], "unknown image format '.jpg' for r.jpg; render writes .png"),
     (["train", "--data", "d", "--out", "r", "--config", "bogus"], "--config: unknown config 'bogus'"),
     (["train", "--data", "d", "--out", "r", "--device", "bogus"], "--device: unknown device 'bogus'"),

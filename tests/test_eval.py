@@ -213,3 +213,38 @@ def test_json_flag_prints_the_report_as_one_line(tiny_tree, tiny_model, tmp_path
     assert "CD-L1" in res.stderr
     quiet = run_escape("-q", "eval", "--root", tiny_tree, "--model", tiny_model, "--limit", "1", "-c", "chair", "--json")
     assert quiet.exit_code == 0 and quiet.stderr == "" and len(quiet.stdout.decode().splitlines()) == 1
+
+
+def test_reference_cars_are_put_in_the_box_frame_both_ways_round(rng):
+    from escape_cli.core.normalize import car_in_box_frame
+
+    # a ModelNet-like car: z up, its length along y, off centre and 3 units long
+    car = rng.uniform(-0.5, 0.5, size=(500, 3)) * [1.2, 3.0, 0.9] + [5.0, -2.0, 1.0]
+    car[0] = [5.6, 1.4, 1.1]  # a nose at one end: the two ways round differ
+    ahead, behind = car_in_box_frame(car, "z")
+    for boxed in (ahead, behind):
+        np.testing.assert_allclose(boxed.max(0) - boxed.min(0), np.ptp(car, axis=0)[[1, 2, 0]] / np.ptp(car[:, 1]))
+        np.testing.assert_allclose((boxed.max(0) + boxed.min(0)) / 2, 0, atol=1e-12)
+    np.testing.assert_allclose(behind, ahead * [-1, 1, -1])
+    assert ahead[0, 0] > 0.49 and behind[0, 0] < -0.49
+    with pytest.raises(Exception, match="no length"):
+        car_in_box_frame(np.ones((10, 3)), "y")
+
+
+def test_kitti_mmd_against_modelnet_cars_in_the_box_frame(realdata_dir, shapes_dir, tiny_model, tmp_path):
+    refs = tmp_path / "modelnet-cars"
+    refs.mkdir()
+    for path in sorted((shapes_dir / "modelnet40" / "car" / "test").glob("*.npy"))[:3]:
+        (refs / path.name).write_bytes(path.read_bytes())
+    scores = {}
+    for up in (None, "z"):
+        out = tmp_path / f"k-{up}.json"
+        extra = ("--reference-up", up) if up else ()
+        res = run_escape("eval", "--dataset", "kitti", "--root", realdata_dir / "kitti_cars", "--model", tiny_model,
+                         "--reference", refs, *extra, "--json-out", out)
+        assert res.exit_code == 0, res.stderr
+        report = json.loads(out.read_text())
+        assert report["settings"]["reference_up"] == up
+        scores[up] = report["average"]["input/mmd_cd_l2_x1000_mean"]
+    # unit-sphere cars lying along y are far from length-1 cars along x; in the box frame they are near
+    assert scores["z"] < 0.5 * scores[None], scores

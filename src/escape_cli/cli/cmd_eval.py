@@ -32,6 +32,10 @@ def command(
     snap_radius: Optional[float] = SNAP_RADIUS,
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
+    reference_up: Optional[str] = typer.Option(
+        None, "--reference-up", metavar="x|y|z",
+        help="KITTI: the up axis of the --reference cars (z for ModelNet40); each is then put in the KITTI cars' box frame (centred on its bounding box, length 1 along x, up y) and taken both ways round. Default: used as they are (already in that frame, as `escape dataset synth` cars are).",
+    ),
     json_lines: bool = JSON,
     json_path: Optional[Path] = typer.Option(None, "--json-out", help="Write every number to this JSON file."),
     save: Optional[Path] = typer.Option(None, "--save", help="Write every completion (PLY) under this folder."),
@@ -66,6 +70,11 @@ def command(
         raise typer.BadParameter("must be train, val or test", param_hint="--split")
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
+    if reference_up is not None:
+        if reference_up not in ("x", "y", "z"):
+            raise typer.BadParameter("must be x, y or z", param_hint="--reference-up")
+        if reference is None:
+            raise typer.BadParameter("needs --reference (the folder of complete cars)", param_hint="--reference-up")
     if reference is not None:
         _check_reference_folder(reference, dataset)
     model_path = resolve_model(model)
@@ -111,7 +120,8 @@ def command(
         _print_pcn_table(summary, list(completers), rotate, table_stream)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **summary, "samples": result.records}
     else:
-        refs = _read_references(reference) if reference else None
+        refs = _read_references(reference, reference_up) if reference else None
+        settings.update(reference=None if reference is None else str(reference), reference_up=reference_up)
         if refs is None:
             logging.getLogger("escape").warning(
                 "no --reference folder of complete cars: MMD is not scored, nor is the input copy "
@@ -154,11 +164,16 @@ def _kitti_completers(net, completers: dict, **options) -> dict:
     return kitti
 
 
-def _read_references(folder: Path):
+def _read_references(folder: Path, up: Optional[str] = None) -> list:
+    """The reference cars of FOLDER (and below), as they are or, with `up`, in the box frame (both ways round)."""
     from escape_cli.cli.inputs import expand_inputs
+    from escape_cli.core.normalize import car_in_box_frame
     from escape_cli.io import read_points
 
-    return [read_points(p) for p in expand_inputs([str(folder)], recursive=True)]
+    clouds = [read_points(p) for p in expand_inputs([str(folder)], recursive=True)]
+    if up is None:
+        return clouds
+    return [turned for cloud in clouds for turned in car_in_box_frame(cloud, up)]
 
 
 def _print_pcn_table(summary: dict, methods: list[str], rotate: bool, stream) -> None:

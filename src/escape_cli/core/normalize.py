@@ -413,3 +413,37 @@ def box_normalization(corners, pcn_axes: bool = True, tol: float = 0.02) -> BoxN
     lateral = np.cross(w, u)  # (3,) unit: w x u
     rotation = np.stack((u, w, lateral) if pcn_axes else (u, lateral, w))  # (3, 3) rows = axes
     return BoxNormalization(rotation, box.mean(axis=0), length)
+
+
+AXES = "xyz"
+
+
+def car_in_box_frame(points, up: str) -> list[np.ndarray]:
+    """A complete reference car in the frame `box_normalization` gives a KITTI car: both ways round.
+
+    The car is centred on its axis-aligned bounding box and scaled so that its length
+    (the longer of its two horizontal extents; `up` names the vertical axis, ``"z"`` for
+    ModelNet, ``"y"`` for ShapeNet) is 1; then x = length, y = up, z = lateral (PCN's
+    axes). Which end is the front is not known, so the car comes back twice: as it is and
+    turned by 180 degrees about y. A car with no extent along its length is refused.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    up : one of "x", "y", "z"
+
+    Returns
+    -------
+    [(N, 3), (N, 3)] float64
+    """
+    if up not in AXES:
+        raise ValueError(f"up must be one of x, y, z, got {up!r}")
+    pts = np.asarray(points, dtype=np.float64)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    vertical = AXES.index(up)
+    length, lateral = sorted((a for a in range(3) if a != vertical), key=lambda a: hi[a] - lo[a], reverse=True)
+    extent = hi[length] - lo[length]
+    if not np.isfinite(extent) or extent <= 0:
+        raise DegenerateGeometryError("a reference car has no length (all its points in one plane across it)")
+    boxed = ((pts - (lo + hi) / 2) / extent)[:, [length, vertical, lateral]]
+    return [boxed, boxed * np.array([-1.0, 1.0, -1.0])]
