@@ -197,4 +197,8 @@ def _run_parallel(func, jobs, workers: int, label: str) -> list:
                 for res in pool.imap(func, jobs, chunksize=16):
                     results.append(res)
                     progress.advance(task)
+                # each worker ends on its own; leaving the block at once would terminate() them, which
+                # can hang forever when a worker waits on the task queue's lock as the pool kills them
+                pool.close()
+                pool.join()
     return results
