@@ -65,6 +65,7 @@ CALLS = {
     normalize.Normalization.identity().invert: ((CLOUD,), [0]),
     normalize.box_normalization(BOX).apply: ((CLOUD,), [0]),
     normalize.box_normalization(BOX).invert: ((CLOUD,), [0]),
+    normalize.car_in_box_frame: ((CLOUD, "z"), [0]),
     rotations.rotation_about_axis: ((np.ones(3), 0.3), [0]),
     metrics.nearest_distances: ((CLOUD, CLOUD), [0, 1]),
     metrics.nearest_distances_naive: ((CLOUD, CLOUD), [0, 1]),
