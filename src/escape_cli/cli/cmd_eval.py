@@ -71,7 +71,9 @@ def command(
     if normalize not in ("auto", "none"):
         raise typer.BadParameter("must be auto or none", param_hint="--normalize")
     if reference_up is not None:
-        if reference_up not in ("x", "y", "z"):
+        from escape_cli.core.normalize import AXES
+
+        if reference_up not in AXES:
             raise typer.BadParameter("must be x, y or z", param_hint="--reference-up")
         if reference is None:
             raise typer.BadParameter("needs --reference (the folder of complete cars)", param_hint="--reference-up")

@@ -63,7 +63,7 @@ def command(
     if init is not None and init.suffix.lower() == ".onnx":
         require("onnx", "escape train --init MODEL.onnx")
     from escape_cli.nn.config import get_preset
-    from escape_cli.nn.train import PRECISIONS, Trainer, TrainOptions
+    from escape_cli.nn.train import PRECISIONS, Trainer, TrainOptions, saved_options
 
     try:
         get_preset(config)  # fail early on an unknown preset
@@ -75,7 +75,7 @@ def command(
     if not resume and (out / "last.pt").exists():
         raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
     _check_run_folder(out, data, init)
-    saved = _saved_options(out) if resume else {}  # what --resume keeps when not given again
+    saved = saved_options(out) if resume else {}  # what --resume keeps when not given again
     if precision is None:
         precision = saved.get("precision") or "fp32"  # a run from before --precision trained in fp32
     if cache is None and saved.get("cache"):
@@ -122,13 +122,6 @@ def _check_device(device: str) -> None:
         raise typer.BadParameter(f"unknown device {device!r} (cpu, cuda, cuda:N)", param_hint="--device") from None
     if kind == "cuda" and not torch.cuda.is_available():
         raise typer.BadParameter(f"{device}: no CUDA device is available here", param_hint="--device")
-
-
-def _saved_options(out: Path) -> dict:
-    """The options OUT's run was started with, for what --resume keeps ({} without a last.pt)."""
-    from escape_cli.nn.train import saved_options
-
-    return saved_options(out)
 
 
 def _check_val_data(val_roots: tuple, cache: Optional[Path]) -> None:

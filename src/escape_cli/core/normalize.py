@@ -438,7 +438,7 @@ def car_in_box_frame(points, up: str) -> list[np.ndarray]:
     """
     if up not in AXES:
         raise ValueError(f"up must be one of x, y, z, got {up!r}")
-    pts = as_points(points, "reference car", min_points=1).astype(np.float64)
+    pts = as_points(points, "reference car", min_points=1)  # float64
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     vertical = AXES.index(up)
     length, lateral = sorted((a for a in range(3) if a != vertical), key=lambda a: hi[a] - lo[a], reverse=True)

@@ -245,7 +245,12 @@ def write_output_bytes(path: str | Path, data: bytes, *, overwrite: bool = False
 
 
 def write_file_atomically(path: str | Path, data: bytes) -> None:
-    """Write `data` to `path` whole or not at all: a temporary file beside it, renamed into place.
+    """Write `data` to `path` whole or not at all (`write_atomically` with these bytes)."""
+    write_atomically(path, lambda handle: handle.write(data))
+
+
+def write_atomically(path: str | Path, write) -> None:
+    """Write `path` whole or not at all: `write(handle)` fills a temporary file beside it, renamed into place.
 
     For the many files a command makes in a folder of its own (a dataset's point
     files): an existing `path` is replaced, none of `write_output_bytes`' checks are
@@ -262,7 +267,7 @@ def write_file_atomically(path: str | Path, data: bytes) -> None:
     temp = _create_temp_file(target)
     try:
         with open(temp, "wb") as handle:
-            handle.write(data)
+            write(handle)
         os.replace(temp, target)
     except OSError as err:
         raise OutputFileError(f"cannot write {target}: {err.strerror or err}") from None

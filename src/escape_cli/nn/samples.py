@@ -155,25 +155,15 @@ def prepare_split(
 
 
 def _write_cache(cache: Path, split_data: PreparedSplit) -> None:
-    """Write CACHE atomically: a temporary file of this writer's own, then a rename.
+    """Write CACHE whole or not at all (`io.files.write_atomically`).
 
-    Runs sharing a cache folder may write the same file at once; each writes its own
-    temporary, and a reader sees one whole file or none.
+    Runs sharing a cache folder may write the same file at once; each writes a temporary
+    file of its own (named by its process), and a reader sees one whole file or none.
     """
-    import os
-    import tempfile
+    from escape_cli.io.files import write_atomically
 
     cache.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{cache.name}.", suffix=".tmp", dir=cache.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez(fh, **split_data.__dict__)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it private
-        os.replace(tmp, cache)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+    write_atomically(cache, lambda handle: np.savez(handle, **split_data.__dict__))
 
 
 def _run_parallel(func, jobs, workers: int, label: str) -> list:
