@@ -105,6 +105,64 @@ def test_init_refuses_another_preset(tiny_tree, tmp_path):
         Trainer(options(tiny_tree, tmp_path / "b", config="small", init=str(tmp_path / "a" / "last.pt")))
 
 
+def test_a_deeper_preset_grows_from_a_small_model_and_computes_what_it_did(tiny_tree, tmp_path):
+    import torch
+
+    from escape_cli.nn.config import get_preset
+    from escape_cli.nn.model import EscapeNet
+    from escape_cli.nn.train import grown_state_dict
+
+    torch.manual_seed(3)
+    small = EscapeNet(get_preset("tiny")).eval()
+    deeper = replace(get_preset("tiny"), encoder_depth=3, decoder_depth=2)
+    grown = EscapeNet(deeper).eval()
+    grown.load_state_dict(grown_state_dict(small, deeper, 0, "m.pt"))
+    rows = torch.rand(2, 256, 8)
+    with torch.no_grad():
+        assert torch.allclose(small(rows)[0], grown(rows)[0], atol=1e-6)
+    assert get_preset("small-deep").encoder_depth == get_preset("small-deep").decoder_depth == 6
+    with pytest.raises(Exception, match="another network"):  # shrinking is refused
+        grown_state_dict(grown, get_preset("tiny"), 0, "m.pt")
+
+
+def test_input_augmentation_thins_and_jitters_the_input_alone():
+    from escape_cli.errors import EscapeError
+    from escape_cli.nn.train import InputAugmentation
+
+    rng = np.random.default_rng(0)
+    rows = rng.random((3, 2048, 3)).astype(np.float32)
+    rows[1] = rows[1, np.arange(2048) % 300]  # short scans, refilled
+    rows[2] = rows[2, np.arange(2048) % 100]
+    before = rows.copy()
+    out = InputAugmentation(density=0.3).apply(rows, np.array([2048, 300, 100]), np.random.default_rng(1))
+    assert np.array_equal(rows, before)  # a new array
+    kept = [len(np.unique(o, axis=0)) for o in out]
+    assert 0.3 * 2048 <= kept[0] < 2048 and 256 <= kept[1] <= 300 and kept[2] == 100
+    assert np.array_equal(out[:, :256], rows[:, :256])  # the frame's rows stay
+    assert np.array_equal(out[0], out[0][np.arange(2048) % kept[0]])  # refilled cyclically
+    noisy = InputAugmentation(noise=0.01).apply(rows, np.array([2048, 300, 100]), np.random.default_rng(1))
+    assert 0 < np.abs(noisy - rows).mean() < 0.01
+    assert len(np.unique(noisy[2], axis=0)) == 100  # jittered before the refill: repeats stay repeats
+    for bad in (dict(noise=-1.0), dict(noise=float("nan")), dict(density=0.0), dict(density=1.5)):
+        with pytest.raises(EscapeError):
+            InputAugmentation(**bad)
+
+
+def test_augmentation_keeps_the_batches_and_changes_only_the_inputs(tiny_tree, tmp_path):
+    from escape_cli.nn.train import sample_batch
+
+    trainer = Trainer(options(tiny_tree, tmp_path / "a", max_steps=1, augment_noise=0.01, augment_density=0.5))
+    data, idx = trainer.train_data, np.arange(2)
+    plain = sample_batch(data, idx, np.random.default_rng(5), 512, 0.0, trainer.device)
+    augmented = sample_batch(data, idx, np.random.default_rng(5), 512, 0.0, trainer.device,
+                             trainer.opt.augmentation, np.random.default_rng(6))
+    assert not np.allclose(plain[2].numpy(), augmented[2].numpy())  # inputs differ
+    for a, b in ((plain[1], augmented[1]), (plain[3], augmented[3]), (plain[4], augmented[4])):
+        assert np.array_equal(a.numpy(), b.numpy())  # truth, anchors: the same draws
+    trainer.run()
+    assert trainer.step == 1
+
+
 def test_training_on_two_datasets_joins_their_train_splits(tiny_tree, tmp_path):
     other = tmp_path / "other"
     write_tiny_pcn_tree(other, seed=9, objects=1, views=1)

@@ -51,6 +51,9 @@ PRESETS: dict[str, ModelConfig] = {
     # Trains on 2 CPU cores; predicts 256 x 64 = 16384 points, so a completion never
     # needs to repeat points. (The first shipped model had fold 56 and no softplus.)
     "small": ModelConfig(fold=64, positive_output=True),
+    # `small` with two more encoder and decoder layers (9.0 M parameters, +2.6 M); grown from a
+    # `small` model by `--init`, its new layers start as the identity.
+    "small-deep": ModelConfig(fold=64, positive_output=True, encoder_depth=6, decoder_depth=6),
     # Two tiny configurations for tests.
     "tiny": ModelConfig(
         input_points=256, centres_fine=64, centres_coarse=32, group_knn=8, embed_dim=16, dim=32,

@@ -51,6 +51,8 @@ class TrainOptions:
     coarse_weight: float = 1.0
     include_observed: bool = True  # the input's own rows join the prediction in the loss
     denoise_sigma: float = 0.0  # Gaussian jitter on input points; the target stays clean
+    augment_noise: float = 0.0  # each sample's input jittered by a sigma drawn from [0, this] (see InputAugmentation)
+    augment_density: float = 1.0  # each sample keeps a fraction of its distinct rows drawn from [this, 1]
     xyz_weight: float = 0.0  # weight of Chamfer-L1 in xyz after reconstruction (0: DMCD only)
     recall_weight: float = 1.0  # weight of the xyz term's truth -> prediction half (1: symmetric)
     val_every: int = 0  # steps between validations (0: once per epoch)
@@ -71,6 +73,7 @@ class TrainOptions:
     val_data: tuple[str, ...] = ()  # validation sets: these datasets' val splits (empty: `data`'s)
 
     def __post_init__(self):
+        InputAugmentation(self.augment_noise, self.augment_density)  # refuses bad values
         if self.precision not in PRECISIONS:
             raise EscapeError(f"unknown precision {self.precision!r} (choose from {', '.join(PRECISIONS)})")
 
@@ -83,6 +86,10 @@ class TrainOptions:
     def val_roots(self) -> tuple[str, ...]:
         """The datasets whose val splits validate the run: `val_data`, else `data` alone."""
         return self.val_data or (self.data,)
+
+    @property
+    def augmentation(self) -> "InputAugmentation":
+        return InputAugmentation(self.augment_noise, self.augment_density)
 
     @classmethod
     def from_dict(cls, raw: dict) -> "TrainOptions":
@@ -97,6 +104,50 @@ class TrainOptions:
         if values.get("categories"):
             values["categories"] = tuple(values["categories"])
         return cls(**values)
+
+
+@dataclass(frozen=True)
+class InputAugmentation:
+    """Noise and density of the training inputs, drawn per sample, as real scans vary.
+
+    noise : the largest sigma of Gaussian jitter (network-frame units, where a partial's
+        radius is about 0.28); each sample's sigma is drawn uniformly from [0, noise].
+    density : the smallest kept fraction of a sample's distinct rows; each sample keeps
+        the first m rows (a farthest-point prefix, i.e. a sparser scan of the same
+        surface), m drawn from [density, 1] of them but never under `MIN_ROWS`, and is
+        refilled cyclically as `prepare_input` refills a short scan. The first
+        `MIN_ROWS` rows stay, so the partial's frame and anchors are unchanged.
+    The truth is never touched.
+    """
+
+    noise: float = 0.0
+    density: float = 1.0
+
+    MIN_ROWS = 256  # PartialFrame's rows: the frame is fitted on these
+
+    def __post_init__(self):
+        if not (math.isfinite(self.noise) and self.noise >= 0):
+            raise EscapeError(f"augmentation noise must be a finite number >= 0, got {self.noise}")
+        if not (0 < self.density <= 1):
+            raise EscapeError(f"augmentation density must be in (0, 1], got {self.density}")
+
+    @property
+    def active(self) -> bool:
+        return self.noise > 0 or self.density < 1
+
+    def apply(self, points: np.ndarray, unique_counts: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """points : (B, N, 3) FPS-ordered inputs, unique_counts : (B,) distinct leading rows -> (B, N, 3) new array."""
+        out = np.array(points, dtype=np.float32, copy=True)
+        n = out.shape[1]
+        for b in range(len(out)):
+            keep = int(unique_counts[b])
+            if self.density < 1 and keep > self.MIN_ROWS:
+                keep = max(self.MIN_ROWS, int(round(rng.uniform(self.density, 1.0) * keep)))
+            distinct = out[b, :keep]  # (M, 3), a view: jittered before the refill repeats it
+            if self.noise > 0:
+                distinct += (rng.uniform(0.0, self.noise) * rng.standard_normal(distinct.shape)).astype(np.float32)
+            out[b] = distinct[np.arange(n) % keep]
+        return out
 
 
 def distances(points: torch.Tensor, anchors: torch.Tensor) -> torch.Tensor:
@@ -164,12 +215,18 @@ def cache_lock(folder: Path):
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device):
+def sample_batch(data: PreparedSplit, idx: np.ndarray, rng: np.random.Generator, gt_points: int, noise: float, device,
+                 augmentation: InputAugmentation | None = None, augment_rng: np.random.Generator | None = None):
     """Rows `idx` of a split: (B, N, K) input and (B, G, K) truth distances, then the xyz of input, anchors, truth.
 
     Everything is in each sample's network frame (the truth mapped like its partial).
+    An active `augmentation` changes the inputs with draws from `augment_rng` (its own
+    generator, so the batches, truth subsets and fold seeds stay those of a run without it).
     """
-    pts = torch.from_numpy(data.inputs[idx]).to(device)  # (B, N, 3)
+    inputs = data.inputs[idx]  # (B, N, 3)
+    if augmentation is not None and augmentation.active:
+        inputs = augmentation.apply(inputs, data.unique_counts[idx], augment_rng)
+    pts = torch.from_numpy(inputs).to(device)  # (B, N, 3)
     anc = torch.from_numpy(data.anchors[idx]).to(device)  # (B, K, 3)
     if noise > 0:
         pts = pts + noise * torch.from_numpy(rng.standard_normal(pts.shape).astype(np.float32)).to(device)
@@ -210,7 +267,7 @@ class Trainer:
         if self.device.type == "cuda" and not torch.cuda.is_available():
             raise EscapeError("--device cuda was asked for but no CUDA device is available")
         if options.precision == "bf16" and self.device.type == "cpu" and not _cpu_has_bf16():
-            log.warning("this CPU has no bfloat16 instructions (AVX512-BF16 or AMX): --precision bf16 is emulated and may be slower")
+            log.warning("this CPU has no bfloat16 instructions (AVX512-BF16 or AMX): --precision bf16 is emulated and much slower: use --precision fp32")
         self.config: ModelConfig = get_preset(options.config)
         torch.manual_seed(options.seed)
         self.model = EscapeNet(self.config).to(self.device)
@@ -355,7 +412,8 @@ class Trainer:
         for group in self.optimizer.param_groups:
             group["lr"] = self.lr_at(self.step)
         d_in, d_gt, pts, anc, gt = sample_batch(
-            self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma, self.device
+            self.train_data, idx, rng, self.opt.gt_points, self.opt.denoise_sigma, self.device,
+            self.opt.augmentation, np.random.default_rng((self.opt.seed, self.step, 2)),
         )
         seed_index = torch.from_numpy(np.sort(rng.choice(self.config.fold, min(self.opt.fold_subset, self.config.fold), replace=False)))
         lap("sample")
@@ -516,24 +574,47 @@ def saved_options(out: Path) -> dict:
 
 
 def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> dict:
-    """`model`'s weights for a network of `config`: equal configs, or one that only adds fold seeds / the softplus.
+    """`model`'s weights for a network of `config`: equal configs, or one that only grows.
 
-    New fold seeds are copies of randomly chosen old ones plus a little noise (so new
-    points start where old ones were and spread with training); the softplus changes
-    distances above 0.05 by less than 7e-5.
+    A network may grow by fold seeds, the softplus and transformer layers. New fold seeds
+    are copies of randomly chosen old ones plus a little noise (so new points start where
+    old ones were and spread with training); the softplus changes distances above 0.05 by
+    less than 7e-5. New encoder and decoder layers go after the old ones with their
+    residual branches' output projections zeroed: pre-norm layers, so each starts as the
+    identity and the grown network computes what the old one did.
     """
     old = model.config
     if old == config:
         return model.state_dict()
-    same_otherwise = ModelConfig.from_dict({**old.to_dict(), "fold": config.fold, "positive_output": config.positive_output})
-    if same_otherwise != config or config.fold < old.fold:
+    grows = ("fold", "positive_output", "encoder_depth", "decoder_depth")
+    same_otherwise = ModelConfig.from_dict({**old.to_dict(), **{name: getattr(config, name) for name in grows}})
+    if (same_otherwise != config or config.fold < old.fold or config.encoder_depth < old.encoder_depth
+            or config.decoder_depth < old.decoder_depth):
         raise EscapeError(f"--init {path} holds another network ({old}) than the one asked for ({config})")
     state = model.state_dict()
     seeds = state["rebuild.seeds"]  # (F_old, H)
     extra = config.fold - old.fold
+    gen = torch.Generator().manual_seed(seed)
     if extra:
-        gen = torch.Generator().manual_seed(seed)
         pick = torch.randint(old.fold, (extra,), generator=gen)
         noise = 0.05 * seeds.std() * torch.randn(extra, seeds.shape[1], generator=gen)
         state["rebuild.seeds"] = torch.cat([seeds, seeds[pick] + noise])  # (F, H)
+    if config.encoder_depth > old.encoder_depth or config.decoder_depth > old.decoder_depth:
+        state = {**_new_layers(config, old, gen), **state}
     return state
+
+
+def _new_layers(config: ModelConfig, old: ModelConfig, gen: torch.Generator) -> dict:
+    """Weights of the transformer layers `config` has beyond `old`'s, each the identity at first."""
+    torch.manual_seed(int(torch.randint(2**31 - 1, (1,), generator=gen)))
+    fresh = EscapeNet(config).state_dict()
+    new = {}
+    for stack, depth in (("encoder", old.encoder_depth), ("decoder", old.decoder_depth)):
+        for key, value in fresh.items():
+            parts = key.split(".")
+            if parts[0] != stack or int(parts[1]) < depth:
+                continue
+            if parts[2] in ("self_attn", "multihead_attn") and parts[3] == "out_proj" or parts[2] == "linear2":
+                value = torch.zeros_like(value)  # the branch adds nothing until trained
+            new[key] = value
+    return new
