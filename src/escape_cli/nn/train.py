@@ -126,10 +126,10 @@ class InputAugmentation:
     MIN_ROWS = 256  # PartialFrame's rows: the frame is fitted on these
 
     def __post_init__(self):
-        if not (math.isfinite(self.noise) and self.noise >= 0):
-            raise EscapeError(f"augmentation noise must be a finite number >= 0, got {self.noise}")
-        if not (0 < self.density <= 1):
-            raise EscapeError(f"augmentation density must be in (0, 1], got {self.density}")
+        from escape_cli.core.params import as_number
+
+        as_number(self.noise, "augmentation noise", minimum=0.0)
+        as_number(self.density, "augmentation density", above=0.0, maximum=1.0)
 
     @property
     def active(self) -> bool:
@@ -606,8 +606,9 @@ def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> 
 
 def _new_layers(config: ModelConfig, old: ModelConfig, gen: torch.Generator) -> dict:
     """Weights of the transformer layers `config` has beyond `old`'s, each the identity at first."""
-    torch.manual_seed(int(torch.randint(2**31 - 1, (1,), generator=gen)))
-    fresh = EscapeNet(config).state_dict()
+    with torch.random.fork_rng():  # the caller's global generator is left as it was
+        torch.manual_seed(int(torch.randint(2**31 - 1, (1,), generator=gen)))
+        fresh = EscapeNet(config).state_dict()
     new = {}
     for stack, depth in (("encoder", old.encoder_depth), ("decoder", old.decoder_depth)):
         for key, value in fresh.items():
