@@ -16,6 +16,16 @@ from escape_cli.core.rotations import random_rotation  # noqa: E402
 from escape_cli.core.sampling import prepare_input  # noqa: E402
 
 TINY = get_preset("tiny")
+TINY_REFINED = get_preset("tiny-refine")
+
+
+def network(config: ModelConfig, seed: int = 0) -> EscapeNet:
+    """EscapeNet(config) in eval mode; its refiners' offset layers random, not zero (so they move points)."""
+    torch.manual_seed(seed)
+    net = EscapeNet(config).eval()
+    for stage in net.refine:
+        torch.nn.init.normal_(stage.offset.weight, std=0.05)
+    return net
 
 
 def partial_cloud(rng: np.random.Generator, n: int = 600) -> np.ndarray:
@@ -32,9 +42,9 @@ def features(points: np.ndarray, config: ModelConfig = TINY) -> np.ndarray:
     return distance_matrix(prepared, anchors.points).astype(np.float32)
 
 
-def test_forward_shapes():
-    torch.manual_seed(0)
-    net = EscapeNet(TINY).eval()
+@pytest.mark.parametrize("config", [TINY, TINY_REFINED], ids=["fold", "refined"])
+def test_forward_shapes(config):
+    net = network(config)
     x = torch.rand(3, TINY.input_points, TINY.anchors)
     fine, coarse = net(x)
     assert fine.shape == (3, TINY.output_points, TINY.anchors)
@@ -47,9 +57,23 @@ def test_forward_shapes():
     assert torch.allclose(full, fine_sub, atol=1e-6)
 
 
-def test_output_unchanged_under_rotation_and_translation(rng):
-    torch.manual_seed(0)
-    net = EscapeNet(TINY).eval()
+def test_refiners_move_points_and_train_like_they_evaluate():
+    net = network(TINY_REFINED)
+    x = torch.rand(2, TINY.input_points, TINY.anchors)
+    without = network(TINY)  # the same seed draws the same weights for the shared layers
+    without.load_state_dict({k: v for k, v in net.state_dict().items() if not k.startswith("refine.")})
+    with torch.no_grad():
+        refined, coarse = net(x)
+        folded, coarse_before = without(x)
+        assert torch.equal(coarse, coarse_before)  # refiners act on the fine points alone
+        assert float((refined - folded).abs().max()) > 1e-3
+        trained = net.train()(x)[0]  # the training form (embedding lookups) computes the same
+    assert torch.allclose(trained, refined, atol=1e-5)
+
+
+@pytest.mark.parametrize("config", [TINY, TINY_REFINED], ids=["fold", "refined"])
+def test_output_unchanged_under_rotation_and_translation(rng, config):
+    net = network(config)
     cloud = partial_cloud(rng)
     base = net(torch.from_numpy(features(cloud)[None]))[0]
     for i in range(20):

@@ -82,3 +82,24 @@ def test_training_can_start_from_an_exported_model(tmp_path):
     trainer.run()
     meta = export_onnx(tmp_path / "run" / "last.pt", tmp_path / "tuned.onnx")
     assert [run["checkpoint"] for run in meta["training"]["initialised_from"]] == [str(tmp_path / "tiny.onnx")]
+
+
+def test_a_refined_network_comes_back_from_its_export(tmp_path):
+    from escape_cli.nn.config import get_preset
+    from escape_cli.nn.model import EscapeNet
+
+    torch.manual_seed(5)
+    config = get_preset("tiny-refine")
+    net = EscapeNet(config).eval()
+    for stage in net.refine:  # offsets that move points, so parity tests them
+        torch.nn.init.normal_(stage.offset.weight, std=0.05)
+    write_tiny_checkpoint(tmp_path / "r.pt")
+    state = torch.load(tmp_path / "r.pt", weights_only=False)
+    torch.save({**state, "model": net.state_dict(), "config": config.to_dict(),
+                "options": {**state["options"], "config": "tiny-refine"}}, tmp_path / "r.pt")
+    export_onnx(tmp_path / "r.pt", tmp_path / "r.onnx")
+    recovered = state_dict_from_onnx(tmp_path / "r.onnx", config)
+    for name, value in net.state_dict().items():
+        assert torch.equal(recovered[name], value), name
+    model, _ = load_checkpoint_model(tmp_path / "r.onnx")  # checks onnxruntime parity
+    assert len(model.refine) == 2

@@ -125,6 +125,33 @@ def test_a_deeper_preset_grows_from_a_small_model_and_computes_what_it_did(tiny_
         grown_state_dict(grown, get_preset("tiny"), 0, "m.pt")
 
 
+def test_refiners_grow_from_a_small_model_start_as_nothing_and_learn(tiny_tree, tmp_path):
+    import torch
+
+    from escape_cli.nn.config import get_preset
+    from escape_cli.nn.model import EscapeNet
+    from escape_cli.nn.train import grown_state_dict
+
+    torch.manual_seed(4)
+    small = EscapeNet(get_preset("tiny")).eval()
+    refined = replace(get_preset("tiny"), refine_stages=2)
+    grown = EscapeNet(refined).eval()
+    grown.load_state_dict(grown_state_dict(small, refined, 0, "m.pt"))
+    rows = torch.rand(2, 256, 8)
+    with torch.no_grad():
+        assert torch.equal(small(rows)[0], grown(rows)[0])
+    with pytest.raises(Exception, match="another network"):  # dropping refiners is refused
+        grown_state_dict(grown, get_preset("tiny"), 0, "m.pt")
+    assert get_preset("small-refine").refine_stages == 2
+
+    Trainer(options(tiny_tree, tmp_path / "a", max_steps=1)).run()
+    trainer = Trainer(options(tiny_tree, tmp_path / "b", max_steps=3, init=str(tmp_path / "a" / "last.pt"),
+                              config="tiny-refine"))
+    trainer.run()
+    offsets = [stage.offset.weight for stage in trainer.model.refine]
+    assert all(float(w.abs().max()) > 0 for w in offsets)  # the zero offset layers learn
+
+
 def test_input_augmentation_thins_and_jitters_the_input_alone():
     from escape_cli.errors import EscapeError
     from escape_cli.nn.train import InputAugmentation

@@ -16,7 +16,7 @@ def command(
         help="PCN-layout dataset root (from `escape dataset synth`, or PCN); repeat to train on several (validation: the first's val split).",
     ),
     out: Path = typer.Option(..., "--out", help="Run folder: checkpoints, curve.csv (and the cache unless --cache)."),
-    config: str = typer.Option("small", "--config", help="Network preset: small, small-deep (small with 6+6 transformer layers, grown from a small model by --init), paper (or tiny for tests)."),
+    config: str = typer.Option("small", "--config", help="Network preset: small, small-deep (small with 6+6 transformer layers), small-refine (small with two coarse-to-fine offset steps after the fold); both grow from a small model by --init; paper (or tiny for tests)."),
     epochs: int = typer.Option(10, "--epochs", min=1),
     batch: int = typer.Option(8, "--batch", min=1),
     lr: float = typer.Option(5e-4, "--lr", callback=number_check(above=0.0)),

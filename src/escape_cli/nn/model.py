@@ -124,11 +124,48 @@ class RebuildHead(nn.Module):
 
     def forward(self, query_feats: torch.Tensor, coarse: torch.Tensor, seed_index: torch.Tensor | None = None):
         # query_feats : (B, Q, C), coarse : (B, Q, K) -> (B, Q * F', K)
+        points, _ = self.fold(query_feats, coarse, seed_index)
+        return points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F', K)
+
+    def fold(self, query_feats: torch.Tensor, coarse: torch.Tensor, seed_index: torch.Tensor | None = None):
+        """query_feats : (B, Q, C), coarse : (B, Q, K) -> points (B, Q, F', K), their features (B, Q, F', H)."""
         seeds = self.seeds if seed_index is None else self.seeds[seed_index]  # (F', H)
         q = self.query_proj(torch.cat([query_feats, coarse], dim=-1))  # (B, Q, H)
         h = q.unsqueeze(2) + seeds.view(1, 1, seeds.shape[0], seeds.shape[1])  # (B, Q, F', H)
-        points = coarse.unsqueeze(2) + linear_fp32(self.mlp[-1], self.mlp[:-1](h))  # (B, Q, F', K)
-        return points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F', K)
+        hidden = self.mlp[:-1](h)  # (B, Q, F', H)
+        return coarse.unsqueeze(2) + linear_fp32(self.mlp[-1], hidden), hidden  # (B, Q, F', K), (B, Q, F', H)
+
+
+class OffsetRefiner(nn.Module):
+    """One coarse-to-fine step: every rebuilt point moves by a learned local offset.
+
+    A point's offset is an MLP of its own feature, its displacement from its query's
+    coarse point, and the neighbourhood of that query: the max over its `knn` nearest
+    coarse points (in distance space) of [their query feature, their displacement from
+    it] (SnowflakeNet's point deconvolution, with the fold as the split). The offset
+    layer starts at zero, so a network grown by refiners computes what it did before.
+    """
+
+    def __init__(self, dim: int, hidden: int, anchors: int, knn: int):
+        super().__init__()
+        self.knn = knn
+        self.neighbourhood = nn.Linear(dim + anchors, hidden)
+        self.point_in = nn.Linear(hidden + anchors, hidden)
+        self.mid = nn.Linear(hidden, hidden)
+        self.offset = nn.Linear(hidden, anchors)
+        nn.init.zeros_(self.offset.weight)
+        nn.init.zeros_(self.offset.bias)
+
+    def forward(self, points: torch.Tensor, hidden: torch.Tensor, coarse: torch.Tensor, query_feats: torch.Tensor):
+        # points : (B, Q, F', K), hidden : (B, Q, F', H), coarse : (B, Q, K), query_feats : (B, Q, C)
+        idx = knn_indices(coarse, coarse, min(self.knn, coarse.shape[1]))  # (B, Q, k)
+        gather = embed_rows if self.training else gather_rows
+        disp = gather(coarse, idx) - coarse.unsqueeze(2)  # (B, Q, k, K)
+        edges = torch.cat([gather(query_feats, idx), disp], dim=-1)  # (B, Q, k, C + K)
+        context = self.neighbourhood(edges).amax(dim=2)  # (B, Q, H)
+        x = self.point_in(torch.cat([hidden, points - coarse.unsqueeze(2)], dim=-1))  # (B, Q, F', H)
+        x = F.gelu(self.mid(F.gelu(x + context.unsqueeze(2))))  # (B, Q, F', H)
+        return points + linear_fp32(self.offset, x), hidden + x  # (B, Q, F', K), (B, Q, F', H)
 
 
 def _attention(mha: nn.MultiheadAttention, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
@@ -242,6 +279,9 @@ class EscapeNet(nn.Module):
         self.norm = nn.LayerNorm(c.dim)
         self.coarse_refine = nn.Linear(c.dim, c.anchors)
         self.rebuild = RebuildHead(c.dim, c.rebuild_hidden, c.fold, c.anchors)
+        self.refine = nn.ModuleList(
+            OffsetRefiner(c.dim, c.rebuild_hidden, c.anchors, c.refine_knn) for _ in range(c.refine_stages)
+        )
 
     def forward(self, partial: torch.Tensor, seed_index: torch.Tensor | None = None):
         c = self.config
@@ -263,7 +303,10 @@ class EscapeNet(nn.Module):
             queries = decoder_layer(layer, queries, tokens)  # (B, Q, C)
         queries = self.norm(queries)
         coarse = coarse + linear_fp32(self.coarse_refine, queries)  # (B, Q, K)
-        fine = self.rebuild(queries, coarse, seed_index)  # (B, Q*F, K)
+        points, hidden = self.rebuild.fold(queries, coarse, seed_index)  # (B, Q, F, K), (B, Q, F, H)
+        for stage in self.refine:
+            points, hidden = stage(points, hidden, coarse, queries)
+        fine = points.reshape(b, -1, c.anchors)  # (B, Q*F, K)
         if c.positive_output:
             return sharp_softplus(fine), sharp_softplus(coarse)
         return fine, coarse

@@ -576,20 +576,21 @@ def saved_options(out: Path) -> dict:
 def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> dict:
     """`model`'s weights for a network of `config`: equal configs, or one that only grows.
 
-    A network may grow by fold seeds, the softplus and transformer layers. New fold seeds
-    are copies of randomly chosen old ones plus a little noise (so new points start where
-    old ones were and spread with training); the softplus changes distances above 0.05 by
-    less than 7e-5. New encoder and decoder layers go after the old ones with their
-    residual branches' output projections zeroed: pre-norm layers, so each starts as the
-    identity and the grown network computes what the old one did.
+    A network may grow by fold seeds, the softplus, transformer layers and refiners. New
+    fold seeds are copies of randomly chosen old ones plus a little noise (so new points
+    start where old ones were and spread with training); the softplus changes distances
+    above 0.05 by less than 7e-5. New encoder and decoder layers go after the old ones
+    with their residual branches' output projections zeroed: pre-norm layers, so each
+    starts as the identity. New refiners start with a zero offset layer. Either way the
+    grown network computes what the old one did.
     """
     old = model.config
     if old == config:
         return model.state_dict()
-    grows = ("fold", "positive_output", "encoder_depth", "decoder_depth")
+    grows = ("fold", "positive_output", "encoder_depth", "decoder_depth", "refine_stages")
     same_otherwise = ModelConfig.from_dict({**old.to_dict(), **{name: getattr(config, name) for name in grows}})
     if (same_otherwise != config or config.fold < old.fold or config.encoder_depth < old.encoder_depth
-            or config.decoder_depth < old.decoder_depth):
+            or config.decoder_depth < old.decoder_depth or config.refine_stages < old.refine_stages):
         raise EscapeError(f"--init {path} holds another network ({old}) than the one asked for ({config})")
     state = model.state_dict()
     seeds = state["rebuild.seeds"]  # (F_old, H)
@@ -599,18 +600,18 @@ def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> 
         pick = torch.randint(old.fold, (extra,), generator=gen)
         noise = 0.05 * seeds.std() * torch.randn(extra, seeds.shape[1], generator=gen)
         state["rebuild.seeds"] = torch.cat([seeds, seeds[pick] + noise])  # (F, H)
-    if config.encoder_depth > old.encoder_depth or config.decoder_depth > old.decoder_depth:
+    if (config.encoder_depth, config.decoder_depth, config.refine_stages) != (old.encoder_depth, old.decoder_depth, old.refine_stages):
         state = {**_new_layers(config, old, gen), **state}
     return state
 
 
 def _new_layers(config: ModelConfig, old: ModelConfig, gen: torch.Generator) -> dict:
-    """Weights of the transformer layers `config` has beyond `old`'s, each the identity at first."""
+    """Weights of the transformer layers and refiners `config` has beyond `old`'s, each adding nothing at first."""
     with torch.random.fork_rng():  # the caller's global generator is left as it was
         torch.manual_seed(int(torch.randint(2**31 - 1, (1,), generator=gen)))
         fresh = EscapeNet(config).state_dict()
     new = {}
-    for stack, depth in (("encoder", old.encoder_depth), ("decoder", old.decoder_depth)):
+    for stack, depth in (("encoder", old.encoder_depth), ("decoder", old.decoder_depth), ("refine", old.refine_stages)):
         for key, value in fresh.items():
             parts = key.split(".")
             if parts[0] != stack or int(parts[1]) < depth:
