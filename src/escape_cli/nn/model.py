@@ -112,7 +112,7 @@ class EdgeGrouping(nn.Module):
 
 
 class RebuildHead(nn.Module):
-    """Folds every query into F points: offsets = MLP(query feature, learned seed F)."""
+    """Folds every query into F points: offsets = MLP(query feature, learned seed F), with the MLP's last features."""
 
     def __init__(self, dim: int, hidden: int, fold: int, anchors: int):
         super().__init__()
@@ -123,11 +123,6 @@ class RebuildHead(nn.Module):
         )
 
     def forward(self, query_feats: torch.Tensor, coarse: torch.Tensor, seed_index: torch.Tensor | None = None):
-        # query_feats : (B, Q, C), coarse : (B, Q, K) -> (B, Q * F', K)
-        points, _ = self.fold(query_feats, coarse, seed_index)
-        return points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F', K)
-
-    def fold(self, query_feats: torch.Tensor, coarse: torch.Tensor, seed_index: torch.Tensor | None = None):
         """query_feats : (B, Q, C), coarse : (B, Q, K) -> points (B, Q, F', K), their features (B, Q, F', H)."""
         seeds = self.seeds if seed_index is None else self.seeds[seed_index]  # (F', H)
         q = self.query_proj(torch.cat([query_feats, coarse], dim=-1))  # (B, Q, H)
@@ -303,7 +298,7 @@ class EscapeNet(nn.Module):
             queries = decoder_layer(layer, queries, tokens)  # (B, Q, C)
         queries = self.norm(queries)
         coarse = coarse + linear_fp32(self.coarse_refine, queries)  # (B, Q, K)
-        points, hidden = self.rebuild.fold(queries, coarse, seed_index)  # (B, Q, F, K), (B, Q, F, H)
+        points, hidden = self.rebuild(queries, coarse, seed_index)  # (B, Q, F, K), (B, Q, F, H)
         for stage in self.refine:
             points, hidden = stage(points, hidden, coarse, queries)
         fine = points.reshape(b, -1, c.anchors)  # (B, Q*F, K)

@@ -600,7 +600,8 @@ def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> 
         pick = torch.randint(old.fold, (extra,), generator=gen)
         noise = 0.05 * seeds.std() * torch.randn(extra, seeds.shape[1], generator=gen)
         state["rebuild.seeds"] = torch.cat([seeds, seeds[pick] + noise])  # (F, H)
-    if (config.encoder_depth, config.decoder_depth, config.refine_stages) != (old.encoder_depth, old.decoder_depth, old.refine_stages):
+    layers = ("encoder_depth", "decoder_depth", "refine_stages")
+    if any(getattr(config, name) != getattr(old, name) for name in layers):
         state = {**_new_layers(config, old, gen), **state}
     return state
 
