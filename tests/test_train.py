@@ -148,7 +148,7 @@ def test_refiners_grow_from_a_small_model_start_as_nothing_and_learn(tiny_tree, 
     trainer = Trainer(options(tiny_tree, tmp_path / "b", max_steps=3, init=str(tmp_path / "a" / "last.pt"),
                               config="tiny-refine"))
     trainer.run()
-    offsets = [stage.offset.weight for stage in trainer.model.refine]
+    offsets = [stage.offset.weight.detach() for stage in trainer.model.refine]
     assert all(float(w.abs().max()) > 0 for w in offsets)  # the zero offset layers learn
 
 

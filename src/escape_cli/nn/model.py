@@ -301,7 +301,7 @@ class EscapeNet(nn.Module):
         points, hidden = self.rebuild(queries, coarse, seed_index)  # (B, Q, F, K), (B, Q, F, H)
         for stage in self.refine:
             points, hidden = stage(points, hidden, coarse, queries)
-        fine = points.reshape(b, -1, c.anchors)  # (B, Q*F, K)
+        fine = points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F, K)
         if c.positive_output:
             return sharp_softplus(fine), sharp_softplus(coarse)
         return fine, coarse
