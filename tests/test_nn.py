@@ -14,6 +14,7 @@ from escape_cli.nn.loss import chamfer_l1, chamfer_l1_naive  # noqa: E402
 from escape_cli.nn.model import EscapeNet  # noqa: E402
 from escape_cli.core.rotations import random_rotation  # noqa: E402
 from escape_cli.core.sampling import prepare_input  # noqa: E402
+from tests_support import with_moving_refiners  # noqa: E402
 
 TINY = get_preset("tiny")
 TINY_REFINED = get_preset("tiny-refine")
@@ -22,10 +23,7 @@ TINY_REFINED = get_preset("tiny-refine")
 def network(config: ModelConfig, seed: int = 0) -> EscapeNet:
     """EscapeNet(config) in eval mode; its refiners' offset layers random, not zero (so they move points)."""
     torch.manual_seed(seed)
-    net = EscapeNet(config).eval()
-    for stage in net.refine:
-        torch.nn.init.normal_(stage.offset.weight, std=0.05)
-    return net
+    return with_moving_refiners(EscapeNet(config).eval())
 
 
 def partial_cloud(rng: np.random.Generator, n: int = 600) -> np.ndarray:

@@ -13,7 +13,7 @@ from escape_cli.nn.export import export_onnx  # noqa: E402
 from escape_cli.nn.onnx_weights import state_dict_from_onnx  # noqa: E402
 from escape_cli.nn.checkpoint import load_checkpoint_model  # noqa: E402
 from escape_cli.nn.train import Trainer, TrainOptions  # noqa: E402
-from tests_support import write_tiny_checkpoint, write_tiny_pcn_tree  # noqa: E402
+from tests_support import with_moving_refiners, write_tiny_checkpoint, write_tiny_pcn_tree  # noqa: E402
 
 
 @pytest.fixture()
@@ -90,9 +90,7 @@ def test_a_refined_network_comes_back_from_its_export(tmp_path):
 
     torch.manual_seed(5)
     config = get_preset("tiny-refine")
-    net = EscapeNet(config).eval()
-    for stage in net.refine:  # offsets that move points, so parity tests them
-        torch.nn.init.normal_(stage.offset.weight, std=0.05)
+    net = with_moving_refiners(EscapeNet(config).eval())  # so parity tests the offsets
     write_tiny_checkpoint(tmp_path / "r.pt")
     state = torch.load(tmp_path / "r.pt", weights_only=False)
     torch.save({**state, "model": net.state_dict(), "config": config.to_dict(),

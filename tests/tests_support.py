@@ -5,6 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 
+def with_moving_refiners(net):
+    """`net` with its refiners' offset layers random (std 0.05) instead of zero, so they move points."""
+    import torch
+
+    for stage in net.refine:
+        torch.nn.init.normal_(stage.offset.weight, std=0.05)
+    return net
+
+
 def write_tiny_checkpoint(path, seed: int = 0, partial_frame: bool = True):
     """A checkpoint in the layout `escape train` writes, for an untrained tiny network.
 

@@ -131,19 +131,30 @@ class RebuildHead(nn.Module):
         return coarse.unsqueeze(2) + linear_fp32(self.mlp[-1], hidden), hidden  # (B, Q, F', K), (B, Q, F', H)
 
 
+def query_neighbourhoods(coarse: torch.Tensor, query_feats: torch.Tensor, knn: int, training: bool) -> torch.Tensor:
+    """[query feature, displacement from the query] of each query's `knn` nearest coarse points (in distance space).
+
+    coarse : (B, Q, K), query_feats : (B, Q, C) -> (B, Q, k, C + K); what every
+    `OffsetRefiner` reads (the queries do not move between refiners, so it is built once).
+    """
+    idx = knn_indices(coarse, coarse, min(knn, coarse.shape[1]))  # (B, Q, k)
+    gather = embed_rows if training else gather_rows
+    disp = gather(coarse, idx) - coarse.unsqueeze(2)  # (B, Q, k, K)
+    return torch.cat([gather(query_feats, idx), disp], dim=-1)  # (B, Q, k, C + K)
+
+
 class OffsetRefiner(nn.Module):
     """One coarse-to-fine step: every rebuilt point moves by a learned local offset.
 
     A point's offset is an MLP of its own feature, its displacement from its query's
-    coarse point, and the neighbourhood of that query: the max over its `knn` nearest
-    coarse points (in distance space) of [their query feature, their displacement from
-    it] (SnowflakeNet's point deconvolution, with the fold as the split). The offset
-    layer starts at zero, so a network grown by refiners computes what it did before.
+    coarse point, and the neighbourhood of that query: the max over its nearest coarse
+    points of [their query feature, their displacement from it] (`query_neighbourhoods`;
+    SnowflakeNet's point deconvolution, with the fold as the split). The offset layer
+    starts at zero, so a network grown by refiners computes what it did before.
     """
 
-    def __init__(self, dim: int, hidden: int, anchors: int, knn: int):
+    def __init__(self, dim: int, hidden: int, anchors: int):
         super().__init__()
-        self.knn = knn
         self.neighbourhood = nn.Linear(dim + anchors, hidden)
         self.point_in = nn.Linear(hidden + anchors, hidden)
         self.mid = nn.Linear(hidden, hidden)
@@ -151,13 +162,9 @@ class OffsetRefiner(nn.Module):
         nn.init.zeros_(self.offset.weight)
         nn.init.zeros_(self.offset.bias)
 
-    def forward(self, points: torch.Tensor, hidden: torch.Tensor, coarse: torch.Tensor, query_feats: torch.Tensor):
-        # points : (B, Q, F', K), hidden : (B, Q, F', H), coarse : (B, Q, K), query_feats : (B, Q, C)
-        idx = knn_indices(coarse, coarse, min(self.knn, coarse.shape[1]))  # (B, Q, k)
-        gather = embed_rows if self.training else gather_rows
-        disp = gather(coarse, idx) - coarse.unsqueeze(2)  # (B, Q, k, K)
-        edges = torch.cat([gather(query_feats, idx), disp], dim=-1)  # (B, Q, k, C + K)
-        context = self.neighbourhood(edges).amax(dim=2)  # (B, Q, H)
+    def forward(self, points: torch.Tensor, hidden: torch.Tensor, coarse: torch.Tensor, neighbourhoods: torch.Tensor):
+        # points : (B, Q, F', K), hidden : (B, Q, F', H), coarse : (B, Q, K), neighbourhoods : (B, Q, k, C + K)
+        context = self.neighbourhood(neighbourhoods).amax(dim=2)  # (B, Q, H)
         x = self.point_in(torch.cat([hidden, points - coarse.unsqueeze(2)], dim=-1))  # (B, Q, F', H)
         x = F.gelu(self.mid(F.gelu(x + context.unsqueeze(2))))  # (B, Q, F', H)
         return points + linear_fp32(self.offset, x), hidden + x  # (B, Q, F', K), (B, Q, F', H)
@@ -275,7 +282,7 @@ class EscapeNet(nn.Module):
         self.coarse_refine = nn.Linear(c.dim, c.anchors)
         self.rebuild = RebuildHead(c.dim, c.rebuild_hidden, c.fold, c.anchors)
         self.refine = nn.ModuleList(
-            OffsetRefiner(c.dim, c.rebuild_hidden, c.anchors, c.refine_knn) for _ in range(c.refine_stages)
+            OffsetRefiner(c.dim, c.rebuild_hidden, c.anchors) for _ in range(c.refine_stages)
         )
 
     def forward(self, partial: torch.Tensor, seed_index: torch.Tensor | None = None):
@@ -299,8 +306,10 @@ class EscapeNet(nn.Module):
         queries = self.norm(queries)
         coarse = coarse + linear_fp32(self.coarse_refine, queries)  # (B, Q, K)
         points, hidden = self.rebuild(queries, coarse, seed_index)  # (B, Q, F, K), (B, Q, F, H)
-        for stage in self.refine:
-            points, hidden = stage(points, hidden, coarse, queries)
+        if len(self.refine):
+            neighbourhoods = query_neighbourhoods(coarse, queries, c.refine_knn, self.training)  # (B, Q, k, C + K)
+            for stage in self.refine:
+                points, hidden = stage(points, hidden, coarse, neighbourhoods)
         fine = points.reshape(points.shape[0], -1, points.shape[-1])  # (B, Q*F, K)
         if c.positive_output:
             return sharp_softplus(fine), sharp_softplus(coarse)

@@ -587,10 +587,11 @@ def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> 
     old = model.config
     if old == config:
         return model.state_dict()
-    grows = ("fold", "positive_output", "encoder_depth", "decoder_depth", "refine_stages")
+    layers = ("encoder_depth", "decoder_depth", "refine_stages")
+    counts = ("fold",) + layers  # these may only grow
+    grows = counts + ("positive_output",)
     same_otherwise = ModelConfig.from_dict({**old.to_dict(), **{name: getattr(config, name) for name in grows}})
-    if (same_otherwise != config or config.fold < old.fold or config.encoder_depth < old.encoder_depth
-            or config.decoder_depth < old.decoder_depth or config.refine_stages < old.refine_stages):
+    if same_otherwise != config or any(getattr(config, name) < getattr(old, name) for name in counts):
         raise EscapeError(f"--init {path} holds another network ({old}) than the one asked for ({config})")
     state = model.state_dict()
     seeds = state["rebuild.seeds"]  # (F_old, H)
@@ -600,7 +601,6 @@ def grown_state_dict(model: EscapeNet, config: ModelConfig, seed: int, path) -> 
         pick = torch.randint(old.fold, (extra,), generator=gen)
         noise = 0.05 * seeds.std() * torch.randn(extra, seeds.shape[1], generator=gen)
         state["rebuild.seeds"] = torch.cat([seeds, seeds[pick] + noise])  # (F, H)
-    layers = ("encoder_depth", "decoder_depth", "refine_stages")
     if any(getattr(config, name) != getattr(old, name) for name in layers):
         state = {**_new_layers(config, old, gen), **state}
     return state
