@@ -292,6 +292,23 @@ def test_resume_keeps_the_runs_precision_and_reads_checkpoints_without_it(tiny_t
     assert res.exit_code == 2 and "--precision" in res.stderr
 
 
+def test_resume_keeps_the_record_of_init_and_refuses_a_new_one(tiny_tree, tmp_path):
+    from cli_runner import run_escape
+
+    common = ("-q", "train", "--data", tiny_tree, "--config", "tiny", "--batch", "2", "--workers", "1", "--val-limit", "4")
+    first, second = tmp_path / "first", tmp_path / "second"
+    assert run_escape(*common, "--out", first, "--max-steps", "1").exit_code == 0
+    start = first / "last.pt"
+    assert run_escape(*common, "--out", second, "--init", start, "--max-steps", "1").exit_code == 0
+    res = run_escape(*common, "--out", second, "--resume", "--max-steps", "2")
+    assert res.exit_code == 0, res.stderr
+    assert _weights(second / "last.pt")["options"]["init"] == str(start)
+    assert json.loads((second / "options.json").read_text())["init"] == str(start)
+    res = run_escape(*common, "--out", second, "--resume", "--init", start, "--max-steps", "3")
+    assert res.exit_code == 2 and "--init" in res.stderr
+    assert _weights(second / "last.pt")["step"] == 2
+
+
 def test_runs_share_a_cache_folder(tiny_tree, tmp_path, monkeypatch):
     import escape_cli.nn.samples as samples
 

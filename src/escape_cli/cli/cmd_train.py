@@ -35,7 +35,7 @@ def command(
     threads: int = typer.Option(0, "--threads", min=0, max=4096, help="Torch threads (0: default)."),
     xyz_weight: float = typer.Option(0.0, "--xyz-weight", callback=number_check(minimum=0.0), help="Add Chamfer-L1 in xyz after reconstruction, with this weight."),
     recall_weight: float = typer.Option(1.0, "--recall-weight", callback=number_check(above=0.0), help="Weight of the xyz term's truth-to-prediction half against its prediction-to-truth half (1: symmetric)."),
-    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint or exported .onnx model (new optimizer and schedule)."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint or exported .onnx model (new optimizer and schedule); --resume keeps the run's record of it."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", min=1, help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
     precision: Optional[str] = typer.Option(
@@ -74,12 +74,16 @@ def command(
     if precision is not None and precision not in PRECISIONS:
         raise typer.BadParameter(f"must be {' or '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
     _check_device(device)
+    if resume and init is not None:
+        raise typer.BadParameter("--resume goes on from OUT/last.pt's weights; --init starts a new run (give it another --out)", param_hint="--init")
     if not resume and (out / "last.pt").exists():
         raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
     _check_run_folder(out, data, init)
     saved = saved_options(out) if resume else {}  # what --resume keeps when not given again
     if precision is None:
         precision = saved.get("precision") or "fp32"  # a run from before --precision trained in fp32
+    if resume and saved.get("init"):
+        init = Path(saved["init"])  # the record of where the run started; last.pt holds its weights
     if cache is None and saved.get("cache"):
         cache = Path(saved["cache"])
     val_roots = tuple(str(d) for d in val_data) if val_data else tuple(saved.get("val_data") or ())
