@@ -102,7 +102,7 @@ def test_the_wheel_contains_the_model(tmp_path):
         assert f"escape_cli/{name}" in names
     assert "escape_cli/py.typed" in names
     assert any(n.startswith("escape_cli/core/_kernels") and n.endswith((".so", ".pyd")) for n in names)  # compiled here
-    assert wheel.stat().st_size < 50e6
+    assert wheel.stat().st_size < 100e6  # two packaged models of < 50 MB each; PyPI's default file limit is 100 MB
     metadata = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     unconditional = {requirement_name(line.split(":", 1)[1].strip()) for line in metadata.splitlines()
                      if line.startswith("Requires-Dist:") and "extra ==" not in line}
