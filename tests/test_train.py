@@ -78,6 +78,58 @@ def test_train_and_export_through_the_cli(tiny_tree, tmp_path):
     assert meta["validation"]["val_xyz_cd_l1_x1000"] > 0
 
 
+def test_a_run_logged_to_a_file_writes_progress_lines(tiny_tree, tmp_path, monkeypatch):
+    """stderr not a terminal (nohup ... > run.log): a line every LINE_EVERY steps and one per validation, each its own."""
+    import re
+
+    from cli_runner import run_escape
+
+    from escape_cli.cli import train_progress
+
+    monkeypatch.setattr(train_progress, "LINE_EVERY", 2)
+    res = run_escape("train", "--data", tiny_tree, "--out", tmp_path / "run", "--config", "tiny", "--batch", "2",
+                     "--workers", "1", "--val-limit", "4", "--val-every", "3", "--max-steps", "4")
+    assert res.exit_code == 0, res.stderr
+    lines = [line for line in res.stderr.splitlines() if re.search(r"step \d+/4", line)]
+    progress = [line for line in lines if "loss x1000" in line]
+    validations = [line for line in lines if "validation:" in line]
+    assert [re.search(r"step (\d+)/4", line).group(1) for line in progress] == ["2", "4"]
+    assert [re.search(r"step (\d+)/4", line).group(1) for line in validations] == ["3", "4"]
+    assert all(re.match(r"\d\d:\d\d:\d\d step ", line) for line in lines)
+    assert re.search(r"lr \d\.\de-\d\d  \d+\.\d\d s/step$", progress[0])
+    rows = list(csv.DictReader((tmp_path / "run" / "curve.csv").open()))
+    assert validations[0].endswith(f"xyz CD-L1 x1000 {float(rows[0]['val_xyz_cd_l1_x1000']):.2f} (best) / input "
+                                   f"{float(rows[0]['val_input_cd_l1_x1000']):.2f}")
+    assert "\r" not in res.stderr and "\x1b" not in res.stderr  # no bar redraws, no terminal codes
+    assert "" not in res.stderr.splitlines()  # nor the blank lines a disabled bar leaves
+    assert re.search(rf"preparing {tiny_tree.name} train: \d+ samples\n.*preparing {tiny_tree.name} train: done in", res.stderr)
+
+
+def test_progress_lines_name_every_validation_set_and_the_best():
+    from types import SimpleNamespace
+
+    from escape_cli.cli.train_progress import ProgressLines, format_validation
+
+    metrics = {"val_xyz_cd_l1_x1000": 0.5897, "val_xyz_cd_l1_x1000@synth-v1": 15.46, "val_input_cd_l1_x1000@synth-v1": 30.86,
+               "val_dmcd_x1000@synth-v1": 43.5, "val_xyz_cd_l1_x1000@modelnet40": 16.2, "val_input_cd_l1_x1000@modelnet40": 23.88}
+    assert format_validation(metrics, best=0.6) == "score 0.5897 (best)  synth-v1 15.46 / 30.86  modelnet40 16.20 / 23.88"
+    assert format_validation(metrics, best=0.58) == "score 0.5897  synth-v1 15.46 / 30.86  modelnet40 16.20 / 23.88"
+    import io
+
+    stream = io.StringIO()
+    trainer = SimpleNamespace(last_metrics={}, last_step_seconds=0.5, best=0.6, lr_at=lambda step: 1e-5)
+    lines = ProgressLines(trainer, stream, every=10)
+    for step in range(1, 10):
+        lines(step, 20, 0.25, {})
+    assert stream.getvalue() == ""  # nothing before the 10th step, no validation yet
+    lines(10, 20, 0.25, metrics)
+    out = stream.getvalue().splitlines()
+    assert out[0].endswith("step 10/20  loss x1000 250.00  lr 1.0e-05  0.50 s/step")
+    assert out[1].endswith("step 10/20  validation: score 0.5897 (best)  synth-v1 15.46 / 30.86  modelnet40 16.20 / 23.88")
+    lines(11, 20, 0.25, metrics)  # the same validation is not written twice
+    assert len(stream.getvalue().splitlines()) == 2
+
+
 def test_init_starts_from_weights_with_a_fresh_schedule_and_xyz_loss(tiny_tree, tmp_path):
     import torch
 
@@ -357,7 +409,7 @@ def test_two_runs_preparing_one_cache_at_once_prepare_it_once(tiny_tree, tmp_pat
     for thread in threads:
         thread.join()
     assert not errors
-    assert sorted(prepared) == ["preparing train", "preparing val"]  # each split once, by one of the runs
+    assert sorted(prepared) == [f"preparing {tiny_tree.name} train", f"preparing {tiny_tree.name} val"]  # each split once, by one of the runs
     np.testing.assert_array_equal(trainers["a"].train_data.inputs, trainers["b"].train_data.inputs)
     assert sorted(p.name for p in cache.iterdir() if not p.name.startswith("prepared-")) == [".lock"]  # no temporaries
 

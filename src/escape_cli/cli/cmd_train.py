@@ -52,13 +52,12 @@ def command(
 ) -> None:
     """Train the distance-space completion network; keeps last.pt, best.pt and curve.csv in OUT.
 
-    Needs the train extra (torch). The progress bar is on stderr (none with -q).
+    Needs the train extra (torch). Progress is on stderr (none with -q): a bar on a
+    terminal, else a line every 100 steps and one per validation (for a log file).
     """
     import logging
 
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
+    from escape_cli.cli.train_progress import train_progress
     from escape_cli.extras import require
 
     require("torch", "escape train")
@@ -97,21 +96,9 @@ def command(
         precision=precision, cache=str(cache) if cache else None, val_data=val_roots,
     )
     trainer = Trainer(options, resume=resume)
-    columns = [
-        TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-        TextColumn("{task.fields[info]}"), TimeElapsedColumn(), TimeRemainingColumn(),
-    ]
+    several = len(trainer.val_sets) > 1
     quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
-    with Progress(*columns, transient=False, console=Console(stderr=True), disable=quiet) as progress:
-        task = progress.add_task("train", total=None, info="")
-
-        def report(step: int, total: int, loss: float, metrics: dict) -> None:
-            val = metrics.get("val_xyz_cd_l1_x1000")
-            info = f"loss x1000 {1000 * loss:.2f}" + (f"  val {score_name} {val:.{digits}f}" if val is not None else "")
-            progress.update(task, completed=step, total=total, info=info)
-
-        several = len(trainer.val_sets) > 1
-        score_name, digits = ("xyz/input", 3) if several else ("CD-L1 x1000", 2)
+    with train_progress(trainer, quiet) as report:
         metrics = trainer.run(report)
     best = f"best val xyz/input CD-L1 (mean of {len(trainer.val_sets)} sets)" if several else "best val CD-L1 x1000"
     print_summary(f"done: step {trainer.step}, {best} {trainer.best:.3f}, run in {out}")

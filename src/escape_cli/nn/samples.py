@@ -136,7 +136,7 @@ def prepare_split(
         objects.setdefault((ref.synset, ref.model_id), len(objects))
     complete_paths = {(r.synset, r.model_id): r.complete_path for r in refs}
     jobs = [(r.partial_path, input_points, settings, frame) for r in refs]
-    results = _run_parallel(_prepare_one, jobs, workers, f"preparing {split}")
+    results = _run_parallel(_prepare_one, jobs, workers, f"preparing {Path(root).name} {split}")
     completes = np.stack([read_pcd(complete_paths[key]) for key in objects]).astype(np.float32)
     split_data = PreparedSplit(
         inputs=np.stack([r[0] for r in results]),
@@ -167,14 +167,22 @@ def _write_cache(cache: Path, split_data: PreparedSplit) -> None:
 
 
 def _run_parallel(func, jobs, workers: int, label: str) -> list:
+    """[func(job) for job in jobs] on `workers` processes, with a bar on a terminal (a line before and after in a log)."""
     import logging
+    import sys
+    import time
 
     from rich.console import Console
     from rich.progress import Progress
 
     results = []
+    console = Console(stderr=True)
     quiet = not logging.getLogger("escape").isEnabledFor(logging.WARNING)
-    with Progress(transient=True, console=Console(stderr=True), disable=quiet) as progress:
+    lines = not quiet and not console.is_terminal  # a log file: no bar, which would leave blank lines there
+    if lines:
+        start = time.perf_counter()
+        print(f"{time.strftime('%H:%M:%S')} {label}: {len(jobs)} samples", file=sys.stderr, flush=True)
+    with Progress(transient=True, console=console, disable=quiet or lines) as progress:
         task = progress.add_task(label, total=len(jobs))
         if workers <= 1:
             for job in jobs:
@@ -191,4 +199,6 @@ def _run_parallel(func, jobs, workers: int, label: str) -> list:
                 # can hang forever when a worker waits on the task queue's lock as the pool kills them
                 pool.close()
                 pool.join()
+    if lines:
+        print(f"{time.strftime('%H:%M:%S')} {label}: done in {time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
     return results

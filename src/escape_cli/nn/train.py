@@ -454,8 +454,11 @@ class Trainer:
     def run(self, progress_callback=None, steps: int | None = None) -> dict:
         """Train to the end of the schedule, or `steps` more steps (then call again to go on); returns the last validation's metrics.
 
-        Each step's seconds are in `last_step_seconds`; with `stage_times` set to a dict,
-        it gains each stage's seconds (see `train_step`).
+        `progress_callback(step, total, loss, metrics)` is called after every step, once
+        that step's validation (if one was due) is done: `metrics` is the latest
+        validation's dict, a new one after each validation. Each step's seconds are in
+        `last_step_seconds`; with `stage_times` set to a dict, it gains each stage's
+        seconds (see `train_step`).
         """
         o = self.opt
         total_steps = self.total_steps
@@ -467,13 +470,12 @@ class Trainer:
             idx = order[pos * o.batch : (pos + 1) * o.batch]
             rng = np.random.default_rng((o.seed, self.step, 1))
             t0 = time.perf_counter()
-            self._losses.append(self.train_step(idx, rng, self.stage_times))
+            loss = self.train_step(idx, rng, self.stage_times)
+            self._losses.append(loss)
             self.last_step_seconds = time.perf_counter() - t0
             self.elapsed += self.last_step_seconds
             end_of_epoch = self.step % self.steps_per_epoch == 0
             due = (o.val_every and self.step % o.val_every == 0) or end_of_epoch or self.step == total_steps
-            if progress_callback:
-                progress_callback(self.step, total_steps, self._losses[-1], self.last_metrics)
             if due:
                 self.last_metrics = self.validate()
                 row = {
@@ -492,6 +494,8 @@ class Trainer:
                 self._save("last.pt")
             if o.snapshot_every and self.step % o.snapshot_every == 0:
                 self._save_snapshot()
+            if progress_callback:  # after the step's validation: a due step reports its own metrics
+                progress_callback(self.step, total_steps, loss, self.last_metrics)
         return self.last_metrics
 
     def _save_snapshot(self) -> None:
