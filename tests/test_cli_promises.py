@@ -612,6 +612,26 @@ def test_an_interrupt_at_any_moment_of_one_scan_is_one_line(tmp_path):
     assert interrupted >= len(moments) - 2  # a cold one-scan run takes longer than these moments
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_while_the_interpreter_tears_down_after_the_command_is_ignored(tmp_path, signum):
+    """The interpreter puts back the default actions before tearing its modules down (open3d's take
+    long): a signal then must not kill a finished command silently, with no line and no code of ours."""
+    script = tmp_path / "late.py"
+    script.write_text(
+        "import escape_cli.interrupts as interrupts\n"
+        "interrupts.install()\n"
+        "import os, time\n"
+        "class SignalAtTeardown:\n"
+        "    def __del__(self):\n"
+        f"        os.kill(os.getpid(), {int(signum)})\n"
+        "        time.sleep(0.2)\n"
+        "late = SignalAtTeardown()\n"
+        "print('finished', flush=True)\n"
+    )
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, timeout=60)
+    assert (done.returncode, done.stdout, done.stderr) == (0, b"finished\n", b"")
+
+
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads a process's signal handlers from /proc")
 def test_an_interrupt_in_a_worker_pool_is_one_line_and_leaves_no_worker(tmp_path):
     """Workers never see Ctrl-C (not even while their interpreter starts): the parent stops them,

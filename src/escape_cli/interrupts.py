@@ -7,7 +7,8 @@ temporary file registered with `track` is removed, ``escape: interrupted`` is wr
 on stderr, and the process exits with 128 + the signal (130 for SIGINT, 143 for
 SIGTERM) through `os._exit`: no exception is raised, so no traceback, half-finished
 import or exit handler can follow. Finished outputs stay (they were renamed into place
-whole). The handler runs between any two bytecodes of the main thread, from the
+whole). A signal that comes once the command has finished, while the interpreter tears
+itself down, is ignored: the process exits as it finished. The handler runs between any two bytecodes of the main thread, from the
 entry point's first line on; a signal that arrives while native code runs (a forward
 pass, a big numpy call) is handled as soon as that call returns.
 
@@ -47,8 +48,23 @@ def install() -> None:
     if not _installed:
         _handled = tuple(signum for signum in SIGNALS if _signal.getsignal(signum) != _signal.SIG_IGN)
         _installed = True
+        import atexit  # built in: no import of Python code
+
+        atexit.register(_ignore_signals)  # registered first, so it runs last
     for signum in _handled:
         _signal.signal(signum, _interrupted)
+
+
+def _ignore_signals() -> None:
+    """At exit, after every other exit handler: ignore SIGINT and SIGTERM from here on.
+
+    The interpreter then tears down its modules (open3d's, torch's: up to a second) after
+    putting back the default action of every signal that had a Python handler, so a
+    signal in that window would kill the process silently, with no line and no exit
+    code of ours. The command's work is done by then: the process exits as it finished.
+    """
+    for signum in _handled:
+        _signal.signal(signum, _signal.SIG_IGN)
 
 
 def installed() -> bool:
