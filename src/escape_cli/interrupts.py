@@ -8,9 +8,10 @@ on stderr, and the process exits with 128 + the signal (130 for SIGINT, 143 for
 SIGTERM) through `os._exit`: no exception is raised, so no traceback, half-finished
 import or exit handler can follow. Finished outputs stay (they were renamed into place
 whole). A signal that comes once the command has finished, while the interpreter tears
-itself down, is ignored: the process exits as it finished. The handler runs between any two bytecodes of the main thread, from the
-entry point's first line on; a signal that arrives while native code runs (a forward
-pass, a big numpy call) is handled as soon as that call returns.
+itself down, is ignored: the process exits as it finished. The handler runs between any
+two bytecodes of the main thread, from the entry point's first line on; a signal that
+arrives while native code runs (a forward pass, a big numpy call) is handled as soon as
+that call returns.
 
 Library code only registers here; in a process that did not call `install` (a Python
 program using escape, the test runner) nothing changes.

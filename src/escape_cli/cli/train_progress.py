@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import sys
-import time
 
 LINE_EVERY = 100  # steps between progress lines in a log
 
@@ -54,7 +53,9 @@ class ProgressLines:
             self._write(f"step {step}/{total}  validation: {format_validation(metrics, self.trainer.best)}")
 
     def _write(self, line: str) -> None:
-        print(f"{time.strftime('%H:%M:%S')} {line}", file=self.stream, flush=True)
+        from escape_cli.nn.samples import log_line
+
+        log_line(line, self.stream)
 
 
 @contextlib.contextmanager

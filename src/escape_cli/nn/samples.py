@@ -166,10 +166,17 @@ def _write_cache(cache: Path, split_data: PreparedSplit) -> None:
     write_atomically(cache, lambda handle: np.savez(handle, **split_data.__dict__))
 
 
+def log_line(text: str, stream=None) -> None:
+    """`text` as one time-stamped, flushed line on `stream` (default stderr): progress in a log file."""
+    import sys
+    import time
+
+    print(f"{time.strftime('%H:%M:%S')} {text}", file=stream or sys.stderr, flush=True)
+
+
 def _run_parallel(func, jobs, workers: int, label: str) -> list:
     """[func(job) for job in jobs] on `workers` processes, with a bar on a terminal (a line before and after in a log)."""
     import logging
-    import sys
     import time
 
     from rich.console import Console
@@ -181,7 +188,7 @@ def _run_parallel(func, jobs, workers: int, label: str) -> list:
     lines = not quiet and not console.is_terminal  # a log file: no bar, which would leave blank lines there
     if lines:
         start = time.perf_counter()
-        print(f"{time.strftime('%H:%M:%S')} {label}: {len(jobs)} samples", file=sys.stderr, flush=True)
+        log_line(f"{label}: {len(jobs)} samples")
     with Progress(transient=True, console=console, disable=quiet or lines) as progress:
         task = progress.add_task(label, total=len(jobs))
         if workers <= 1:
@@ -200,5 +207,5 @@ def _run_parallel(func, jobs, workers: int, label: str) -> list:
                 pool.close()
                 pool.join()
     if lines:
-        print(f"{time.strftime('%H:%M:%S')} {label}: done in {time.perf_counter() - start:.0f} s", file=sys.stderr, flush=True)
+        log_line(f"{label}: done in {time.perf_counter() - start:.0f} s")
     return results
