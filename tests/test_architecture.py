@@ -15,6 +15,7 @@ LAYERS = {
     "escape_cli.version": 0,
     "escape_cli.formats": 0,
     "escape_cli.interrupts": 0,
+    "escape_cli.piped_process": 0,
     "escape_cli.extras": 1,
     "escape_cli.packaged_models": 1,
     "escape_cli.core": 1,

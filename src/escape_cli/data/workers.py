@@ -22,9 +22,9 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import escape_cli.interrupts as interrupts
 from escape_cli.errors import DatasetError
+from escape_cli.piped_process import PipedProcess
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-_STOP_SECONDS = 10.0
 
 
 def run_in_workers(function: Callable, jobs: Sequence, workers: int, *,
@@ -70,11 +70,11 @@ def run_in_workers(function: Callable, jobs: Sequence, workers: int, *,
             worker.stop(gently=finished)
 
 
-class _Worker:
+class _Worker(PipedProcess):
     """One worker process, its end of the pipe, and the job it holds (None when idle)."""
 
     def __init__(self, conn, process):
-        self.conn, self.process = conn, process
+        super().__init__(conn, process)
         self.job = None
 
     @classmethod
@@ -97,47 +97,11 @@ class _Worker:
 
     def give(self, job) -> None:
         self.job = job
-        try:
-            self.conn.send(job)
-        except OSError:  # it died already: _collect sees it
-            pass
+        self.send(job)
 
     def receive(self):
         """(kind, value) of the job it held, or None when it died."""
-        try:
-            if self.conn.poll():
-                return self.conn.recv()
-        except (EOFError, OSError):
-            pass
-        return None
-
-    def death(self) -> str:
-        """How the process ended, in words (after it died)."""
-        self.process.join(_STOP_SECONDS)
-        code = self.process.exitcode
-        self.conn.close()
-        if code is None:
-            self.process.kill()
-            self.process.join()
-            return "stopped answering"
-        if code < 0:
-            try:
-                return f"killed by {signal.Signals(-code).name}"
-            except ValueError:
-                return f"killed by signal {-code}"
-        return f"exit code {code}"
-
-    def stop(self, gently: bool) -> None:
-        if gently:
-            try:
-                self.conn.send(None)
-            except OSError:
-                pass
-            self.process.join(_STOP_SECONDS)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join()
-        self.conn.close()
+        return self.answer()
 
 
 def _collect(pool: list[_Worker], folders_of, on_death) -> Iterator:

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import escape_cli.interrupts as interrupts
 from escape_cli.engines.jobs import CompletionJob, complete_chunk, failure, warm_model
+from escape_cli.piped_process import PipedProcess
 
 log = logging.getLogger("escape")
 
@@ -31,7 +32,6 @@ STARTUP_DEATHS = 3
 CHUNK_FILES = 8
 """The most files handed to a worker at once (a dead worker loses at most this many, then retries them)."""
 WORKER_EXIT_ENV = "ESCAPE_TEST_WORKER_EXIT"
-_STOP_SECONDS = 10.0
 
 
 def chunk_size_for(n_jobs: int, workers: int) -> int:
@@ -143,12 +143,12 @@ class _Task:
     retry: bool  # a retry after a dead worker: one file, and no second retry
 
 
-class _Worker:
+class _Worker(PipedProcess):
     """One worker process, its end of the pipe, and the task it holds (None when idle)."""
 
     def __init__(self, context, settings, level: int):
-        self.conn, child = context.Pipe(duplex=True)
-        self.process = context.Process(target=_serve, args=(child, settings, level), daemon=True)
+        conn, child = context.Pipe(duplex=True)
+        super().__init__(conn, context.Process(target=_serve, args=(child, settings, level), daemon=True))
         self.process.start()
         child.close()
         self.task: _Task | None = None
@@ -156,49 +156,14 @@ class _Worker:
 
     def give(self, task: _Task) -> None:
         self.task = task
-        try:
-            self.conn.send(task.jobs)
-        except OSError:  # it died already: the wait in _collect sees it
-            pass
+        self.send(task.jobs)
 
     def receive(self) -> list[dict] | None:
         """The summaries of the task it held, or None when it died."""
-        try:
-            if self.conn.poll():
-                results = self.conn.recv()
-                self.answered = True
-                return results
-        except (EOFError, OSError):
-            pass
-        return None
-
-    def death(self) -> str:
-        """How the process ended, in words (after it died)."""
-        self.process.join(_STOP_SECONDS)
-        code = self.process.exitcode
-        self.conn.close()
-        if code is None:
-            self.process.kill()
-            self.process.join()
-            return "stopped answering"
-        if code < 0:
-            try:
-                return f"killed by {signal.Signals(-code).name}"
-            except ValueError:
-                return f"killed by signal {-code}"
-        return f"exit code {code}"
-
-    def stop(self, gently: bool) -> None:
-        if gently:
-            try:
-                self.conn.send(None)
-            except OSError:
-                pass
-            self.process.join(_STOP_SECONDS)
-        if self.process.is_alive():
-            self.process.kill()
-            self.process.join()
-        self.conn.close()
+        results = self.answer()
+        if results is not None:
+            self.answered = True
+        return results
 
 
 def _busy(pool: list[_Worker]) -> list[_Worker]:
