@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from escape_cli.data.depth_views import DepthCamera, draw_viewpoint
+from escape_cli.data.depth_views import DepthCamera, views_from_random_viewpoints
 from escape_cli.errors import DegenerateGeometryError
 
 NORMAL_NEIGHBOURS = 10
@@ -286,19 +286,7 @@ class SplatScanner:
         DegenerateGeometryError
             When a view keeps showing fewer than `camera.min_points` points.
         """
-        cam = self.camera
-        views = []
-        for _ in range(n_views):
-            for _attempt in range(cam.max_attempts):
-                eye, up = draw_viewpoint(rng, cam)
-                points = self.scan(eye, up)
-                if len(points) >= cam.min_points:
-                    views.append(points)
-                    break
-            else:
-                raise DegenerateGeometryError(
-                    f"no view with at least {cam.min_points} points after {cam.max_attempts} attempts")
-        return views
+        return views_from_random_viewpoints(self.scan, self.camera, n_views, rng)
 
 
 def view_coverage(complete: np.ndarray, view: np.ndarray, fraction: float = 0.02) -> float:

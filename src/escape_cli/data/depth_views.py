@@ -61,6 +61,26 @@ def draw_viewpoint(rng: np.random.Generator, camera: DepthCamera) -> tuple[np.nd
     return direction * distance, up
 
 
+def views_from_random_viewpoints(scan, camera: DepthCamera, n_views: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """`n_views` results of ``scan(eye, up)`` from viewpoints drawn by `draw_viewpoint`, each redrawn until it shows enough points.
+
+    A view with fewer than `camera.min_points` points is drawn again, up to
+    `camera.max_attempts` times; then DegenerateGeometryError.
+    """
+    views = []
+    for _ in range(n_views):
+        for _attempt in range(camera.max_attempts):
+            eye, up = draw_viewpoint(rng, camera)
+            points = scan(eye, up)
+            if len(points) >= camera.min_points:
+                views.append(points)
+                break
+        else:
+            raise DegenerateGeometryError(
+                f"no view with at least {camera.min_points} points after {camera.max_attempts} attempts")
+    return views
+
+
 class DepthScanner:
     """Casts pinhole depth views of one triangle mesh.
 
@@ -125,16 +145,4 @@ class DepthScanner:
         DegenerateGeometryError
             When a view keeps showing fewer than `camera.min_points` points.
         """
-        cam = self.camera
-        views = []
-        for _ in range(n_views):
-            for _attempt in range(cam.max_attempts):
-                eye, up = draw_viewpoint(rng, cam)
-                points = self.scan(eye, up)
-                if len(points) >= cam.min_points:
-                    views.append(points)
-                    break
-            else:
-                raise DegenerateGeometryError(
-                    f"no view with at least {cam.min_points} points after {cam.max_attempts} attempts")
-        return views
+        return views_from_random_viewpoints(self.scan, self.camera, n_views, rng)
