@@ -344,6 +344,35 @@ def test_resume_keeps_the_runs_precision_and_reads_checkpoints_without_it(tiny_t
     assert res.exit_code == 2 and "--precision" in res.stderr
 
 
+def test_resume_keeps_every_option_of_the_run_not_given_again(tiny_tree, tmp_path):
+    """A bare `--resume` goes on as the run was (network, data views, learning rate, seed...), not from the defaults."""
+    from cli_runner import run_escape
+
+    out = tmp_path / "run"
+    res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--config", "tiny", "--batch", "2", "--lr", "1e-3",
+                     "--views", "1", "--seed", "5", "--recall-weight", "2", "--val-limit", "4", "--val-xyz", "3",
+                     "--snapshot-every", "1", "--workers", "1", "--max-steps", "1")
+    assert res.exit_code == 0, res.stderr
+    res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--max-steps", "2", "--workers", "1")
+    assert res.exit_code == 0, res.stderr
+    options = _weights(out / "last.pt")["options"]
+    assert options["max_steps"] == 2 and _weights(out / "last.pt")["step"] == 2
+    kept = {key: options[key] for key in ("config", "batch", "lr", "views_per_object", "seed", "recall_weight", "val_limit",
+                                          "xyz_val_samples", "snapshot_every")}
+    assert kept == {"config": "tiny", "batch": 2, "lr": 1e-3, "views_per_object": 1, "seed": 5, "recall_weight": 2.0,
+                    "val_limit": 4, "xyz_val_samples": 3, "snapshot_every": 1}
+    assert json.loads((out / "options.json").read_text())["lr"] == 1e-3
+    # an option given again replaces the run's, even when it is the default value
+    res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--lr", "5e-4", "--max-steps", "3", "--workers", "1")
+    assert res.exit_code == 0, res.stderr
+    options = _weights(out / "last.pt")["options"]
+    assert options["lr"] == 5e-4 and options["views_per_object"] == 1
+    # the network cannot change under a run
+    res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--config", "small", "--max-steps", "4")
+    assert res.exit_code == 2 and "--config" in res.stderr and "tiny" in res.stderr
+    assert _weights(out / "last.pt")["step"] == 3
+
+
 def test_resume_keeps_the_record_of_init_and_refuses_a_new_one(tiny_tree, tmp_path):
     from cli_runner import run_escape
 

@@ -11,6 +11,7 @@ from escape_cli.cli.options import number_check, print_summary
 
 
 def command(
+    context: typer.Context,
     data: List[Path] = typer.Option(
         ..., "--data",
         help="PCN-layout dataset root (from `escape dataset synth`, or PCN); repeat to train on several (validation: the first's val split).",
@@ -22,7 +23,7 @@ def command(
     lr: float = typer.Option(5e-4, "--lr", callback=number_check(above=0.0)),
     seed: int = typer.Option(0, "--seed", min=0, max=2**63 - 1),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
-    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/last.pt."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/last.pt, with the run's options: each one given again replaces the run's (--max-steps N stretches or shortens the schedule); --device, --threads and --workers are this machine's."),
     val_every: int = typer.Option(0, "--val-every", min=0, help="Validate every N steps (0: each epoch)."),
     val_limit: int = typer.Option(400, "--val-limit", min=1, help="Validation samples used."),
     val_xyz: int = typer.Option(24, "--val-xyz", min=1, help="Validation samples of each set also reconstructed and scored in xyz (the score that picks best.pt)."),
@@ -87,13 +88,17 @@ def command(
         cache = Path(saved["cache"])
     val_roots = tuple(str(d) for d in val_data) if val_data else tuple(saved.get("val_data") or ())
     _check_val_data(val_roots, cache)
+    run = dict(
+        config=config, epochs=epochs, batch=batch, lr=lr, seed=seed, val_every=val_every, val_limit=val_limit,
+        xyz_val_samples=val_xyz, denoise_sigma=denoise, augment_noise=augment_noise, augment_density=augment_density,
+        categories=tuple(categories) if categories else None, views_per_object=views, max_steps=max_steps,
+        xyz_weight=xyz_weight, recall_weight=recall_weight, snapshot_every=snapshot_every,
+    )
+    if resume:
+        run.update(_kept_run_options(context, saved, config))
     options = TrainOptions(
-        data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), config=config, epochs=epochs, batch=batch, lr=lr, seed=seed,
-        device=device, val_every=val_every, val_limit=val_limit, xyz_val_samples=val_xyz, denoise_sigma=denoise,
-        augment_noise=augment_noise, augment_density=augment_density,
-        categories=tuple(categories) if categories else None, views_per_object=views, workers=workers, threads=threads,
-        max_steps=max_steps, xyz_weight=xyz_weight, recall_weight=recall_weight, snapshot_every=snapshot_every, init=str(init) if init else None,
-        precision=precision, cache=str(cache) if cache else None, val_data=val_roots,
+        data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), device=device, workers=workers, threads=threads,
+        init=str(init) if init else None, precision=precision, cache=str(cache) if cache else None, val_data=val_roots, **run,
     )
     trainer = Trainer(options, resume=resume)
     several = len(trainer.val_sets) > 1
@@ -104,6 +109,30 @@ def command(
     print_summary(f"done: step {trainer.step}, {best} {trainer.best:.3f}, run in {out}")
     if metrics:
         print_summary(" ".join(f"{k}={v:.3f}" for k, v in metrics.items()))
+
+
+# What a run is (not the machine it runs on): the command-line name of each, and its TrainOptions field.
+RUN_OPTIONS = {
+    "config": "config", "epochs": "epochs", "batch": "batch", "lr": "lr", "seed": "seed", "val_every": "val_every",
+    "val_limit": "val_limit", "val_xyz": "xyz_val_samples", "denoise": "denoise_sigma", "augment_noise": "augment_noise",
+    "augment_density": "augment_density", "categories": "categories", "views": "views_per_object", "max_steps": "max_steps",
+    "xyz_weight": "xyz_weight", "recall_weight": "recall_weight", "snapshot_every": "snapshot_every",
+}
+
+
+def _kept_run_options(context: typer.Context, saved: dict, config: str) -> dict:
+    """The run's saved value of every RUN_OPTIONS option not given on this command line (a --resume goes on as it was).
+
+    The network cannot change under a run: a --config other than the run's is a usage error.
+    """
+    sources = {name: context.get_parameter_source(name) for name in RUN_OPTIONS}
+    given = {name for name, source in sources.items() if source is not None and source.name == "COMMANDLINE"}
+    if "config" in given and saved.get("config") not in (None, config):
+        raise typer.BadParameter(f"the run is a {saved['config']} network; a resumed run keeps it (leave --config out)", param_hint="--config")
+    kept = {field: saved[field] for name, field in RUN_OPTIONS.items() if name not in given and field in saved}
+    if kept.get("categories"):
+        kept["categories"] = tuple(kept["categories"])
+    return kept
 
 
 def _check_device(device: str) -> None:
