@@ -355,8 +355,9 @@ def test_resume_keeps_every_option_of_the_run_not_given_again(tiny_tree, tmp_pat
     assert res.exit_code == 0, res.stderr
     res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--max-steps", "2", "--workers", "1")
     assert res.exit_code == 0, res.stderr
-    options = _weights(out / "last.pt")["options"]
-    assert options["max_steps"] == 2 and _weights(out / "last.pt")["step"] == 2
+    state = _weights(out / "last.pt")
+    options = state["options"]
+    assert options["max_steps"] == 2 and state["step"] == 2
     kept = {key: options[key] for key in ("config", "batch", "lr", "views_per_object", "seed", "recall_weight", "val_limit",
                                           "xyz_val_samples", "snapshot_every")}
     assert kept == {"config": "tiny", "batch": 2, "lr": 1e-3, "views_per_object": 1, "seed": 5, "recall_weight": 2.0,

@@ -125,14 +125,13 @@ def _kept_run_options(context: typer.Context, saved: dict, config: str) -> dict:
 
     The network cannot change under a run: a --config other than the run's is a usage error.
     """
-    sources = {name: context.get_parameter_source(name) for name in RUN_OPTIONS}
-    given = {name for name, source in sources.items() if source is not None and source.name == "COMMANDLINE"}
-    if "config" in given and saved.get("config") not in (None, config):
-        raise typer.BadParameter(f"the run is a {saved['config']} network; a resumed run keeps it (leave --config out)", param_hint="--config")
-    kept = {field: saved[field] for name, field in RUN_OPTIONS.items() if name not in given and field in saved}
-    if kept.get("categories"):
-        kept["categories"] = tuple(kept["categories"])
-    return kept
+    from escape_cli.nn.train import TrainOptions
+
+    run = TrainOptions.from_dict({"data": "", "out": "", **saved})  # the saved values in their types
+    given = {name for name in RUN_OPTIONS if getattr(context.get_parameter_source(name), "name", None) == "COMMANDLINE"}
+    if "config" in given and "config" in saved and run.config != config:
+        raise typer.BadParameter(f"the run is a {run.config} network; a resumed run keeps it (leave --config out)", param_hint="--config")
+    return {field: getattr(run, field) for name, field in RUN_OPTIONS.items() if name not in given and field in saved}
 
 
 def _check_device(device: str) -> None:
