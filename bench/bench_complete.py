@@ -11,7 +11,9 @@ machine changes both alike:
 - the neighbour queries (`core.neighbours`, the compiled grid) against scipy's cKDTree;
 - the cold `escape complete one.pcd` process against a process that only imports numpy,
   scipy.spatial and onnxruntime (alternately, medians);
-- `complete_many` over `--scans` scans against a loop of `complete` over the same scans.
+- `complete_many` over `--scans` scans against a loop of `complete` over the same scans;
+- warm `complete(anchor_sets=S)` for each S of `--anchor-sets` against one set
+  (alternately, medians).
 
 The reconstruction against scipy's per-point LM is in bench/bench_reconstruction.py.
 """
@@ -173,6 +175,16 @@ def throughput(cloud: np.ndarray, net, scans: int, batch_size: int, rng: np.rand
           f"(results equal: {same})")
 
 
+def anchor_set_times(cloud: np.ndarray, net, counts, repeats: int) -> None:
+    from escape_cli.pipeline import complete
+
+    runs = {count: (lambda count=count: complete(cloud, net, anchor_sets=count)) for count in sorted({1, *counts})}
+    times = alternate(runs, repeats)
+    print(f"\n{'warm complete(), anchor sets (alternately)':44s} {'ms (median)':>12s} {'x one set':>10s}")
+    for count, seconds in times.items():
+        print(f"{count:<44d} {1000 * seconds:12.1f} {seconds / times[1]:10.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", default=None, help="ONNX model (default: the shipped one)")
@@ -180,6 +192,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--scans", type=int, default=64, help="scans for the throughput measurement (0: skip)")
     parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--anchor-sets", default="2,3,5", help="ensemble sizes to time against one set ('': none)")
     parser.add_argument("--fps-sizes", default="5000,20000,100000", help="denser copies of the scan for FPS ('': none)")
     args = parser.parse_args()
     logging.disable(logging.WARNING)  # "fewer points than asked" for scans the model cannot fill
@@ -198,6 +211,8 @@ def main() -> None:
     cold(args.input, args.model, max(3, args.repeats // 2))
     if args.scans:
         throughput(cloud, net, args.scans, args.batch_size, rng)
+    if args.anchor_sets:
+        anchor_set_times(cloud, net, [int(c) for c in args.anchor_sets.split(",")], args.repeats)
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import realdata_clouds, realdata_id
-from escape_cli.core.anchors import METHODS, select_anchors
+from escape_cli.core.anchors import METHODS, anchor_sets, select_anchors
 from escape_cli.core.curvature import surface_variation
 from escape_cli.core.encoding import distance_matrix
 from escape_cli.errors import DegenerateGeometryError, PointCloudError
@@ -59,6 +59,30 @@ def test_anchors_equivariant_on_real_scans(path, realdata_dir):
     rng = np.random.default_rng(11)
     for method in METHODS:
         assert_equivariant(cloud, rng, method)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_anchor_sets_are_equivariant_and_start_with_the_usual_set(method):
+    rng = np.random.default_rng(5)
+    cloud = synthetic_clouds()["half_ellipsoid"]
+    base = anchor_sets(cloud, 8, method=method)
+    assert len(base) == 8
+    assert np.array_equal(base[0].indices, select_anchors(cloud, method=method).indices)
+    assert len({tuple(sorted(a.indices)) for a in base}) > 4, "restarted sets differ"
+    for i in range(5):
+        r, t, perm = random_rotation(rng), rng.normal(scale=2.0, size=3), rng.permutation(len(cloud))
+        got = anchor_sets((cloud @ r.T + t)[perm], 8, method=method)
+        for j, (a, b) in enumerate(zip(got, base)):
+            assert np.array_equal(perm[a.indices], b.indices), f"{method}, trial {i}, set {j}"
+            np.testing.assert_allclose(a.points, b.points @ r.T + t, atol=1e-6)
+
+
+@pytest.mark.parametrize("count", [0, 9, 1.5, True])
+def test_anchor_set_count_is_checked(count):
+    from escape_cli.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="anchor sets"):
+        anchor_sets(synthetic_clouds()["half_ellipsoid"], count)
 
 
 def test_realdata_present_or_skipped_with_message(realdata_dir):

@@ -64,6 +64,16 @@ def test_snap_radius_option(scan, tmp_path, tiny_model):
     assert res.exit_code != 0 and not (tmp_path / "bad.ply").exists()
 
 
+def test_anchor_sets_option(scan, tmp_path, tiny_model):
+    one, pooled = tmp_path / "one.ply", tmp_path / "pooled.ply"
+    for out, extra in ((one, []), (pooled, ["--anchor-sets", "3"])):
+        res = run_escape("complete", scan, "-o", out, "--model", tiny_model, "--points", "1000", "--json", *extra)
+        assert res.exit_code == 0, res.stderr
+    assert json.loads(res.stdout)["available_points"] > 2 * json.loads(res.stdout)["points"]
+    assert read_points(pooled).shape == read_points(one).shape == (1000, 3)
+    assert not np.array_equal(read_points(pooled), read_points(one))
+
+
 def test_batch_with_a_corrupt_file_completes_the_others(tmp_path, rng, tiny_model):
     folder = tmp_path / "scans"
     folder.mkdir()

@@ -128,3 +128,68 @@ def test_complete_many_checks_its_options_first(tiny_model, rng):
         complete_many([partial_cloud(rng, 100)], tiny_model, batch_size=0, return_exceptions=True)
     with pytest.raises(ParameterError, match="normalize"):
         complete_many([partial_cloud(rng, 100)], tiny_model, normalize="bogus", return_exceptions=True)
+
+
+# ------------------------------------------------------------------ anchor-set ensembles
+
+
+def test_anchor_set_ensemble_is_equivariant(tiny_model, rng):
+    cloud = partial_cloud(rng, 500)
+    base = complete(cloud, tiny_model, output_points=1024, anchor_sets=3)
+    assert base.points.shape == (1024, 3) and base.available > 2 * 1024
+    for i in range(4):
+        r = random_rotation(rng)
+        t = rng.normal(scale=3.0, size=3)
+        moved = (cloud @ r.T + t)[rng.permutation(len(cloud))]
+        out = complete(moved, tiny_model, output_points=1024, anchor_sets=3)
+        assert chamfer_l1(out.points, base.points @ r.T + t) < 1e-4, f"rotation {i}"
+        np.testing.assert_array_equal(out.is_observed, base.is_observed)
+
+
+def test_anchor_set_ensemble_pools_every_set_and_keeps_the_scan(tiny_model, rng):
+    cloud = partial_cloud(rng, 300)
+    one = complete(cloud, tiny_model, output_points=1000)  # of 1024 predicted + the 256 rows observed
+    assert np.array_equal(complete(cloud, tiny_model, output_points=1000, anchor_sets=1).points, one.points)
+    pooled = complete(cloud, tiny_model, output_points=1000, anchor_sets=4)
+    assert pooled.points.shape == (1000, 3) and pooled.available == 4 * 1024 + 256
+    np.testing.assert_array_equal(pooled.anchors, one.anchors)  # the first set is the usual one
+    assert pooled.is_observed.sum() == one.is_observed.sum() == 256, "every observed row kept"
+    predicted_one = one.points[~one.is_observed]
+    gap = np.min(np.linalg.norm(pooled.points[~pooled.is_observed][:, None] - predicted_one[None], axis=2), axis=1)
+    assert (gap > 1e-6).sum() > 0.5 * len(gap), "most pooled points come from the other sets"
+    alone = complete(cloud, tiny_model, output_points=1000, anchor_sets=4, keep_input=False)
+    assert alone.points.shape == (1000, 3) and not alone.is_observed.any()
+
+
+def test_complete_many_with_anchor_sets_equals_complete(tiny_model, rng):
+    from escape_cli import complete_many
+
+    clouds = [partial_cloud(rng, n) for n in (200, 500, 90)]
+    many = complete_many(clouds, tiny_model, batch_size=2, output_points=600, anchor_sets=3)
+    for cloud, got in zip(clouds, many):
+        _same_completion(got, complete(cloud, tiny_model, output_points=600, anchor_sets=3))
+
+
+@pytest.mark.parametrize("count", [0, 9, -1, 2.5])
+def test_bad_anchor_set_counts_are_refused(tiny_model, rng, count):
+    from escape_cli import complete_many
+    from escape_cli.errors import ParameterError
+
+    with pytest.raises(ParameterError, match="anchor_sets"):
+        complete(partial_cloud(rng, 100), tiny_model, anchor_sets=count)
+    with pytest.raises(ParameterError, match="anchor_sets"):
+        complete_many([partial_cloud(rng, 100)], tiny_model, anchor_sets=count, return_exceptions=True)
+
+
+def test_pooled_rows_leave_out_the_least_sure_share_and_draw_the_rest(rng):
+    from escape_cli.pipeline import ENSEMBLE_DROP, pooled_rows
+
+    residuals = rng.random(1000)
+    rows = pooled_rows(residuals, 500)
+    assert len(rows) == 500 and np.all(np.diff(rows) > 0)
+    worst = np.argsort(residuals)[-int(ENSEMBLE_DROP * 1000):]
+    assert not np.isin(worst, rows).any()
+    assert np.array_equal(pooled_rows(residuals, 500), rows), "a fixed draw"
+    assert np.array_equal(pooled_rows(residuals, 1000), np.arange(1000))
+    assert np.isin(worst, pooled_rows(residuals, 950)).sum() == 50, "never more left out than the surplus"
+    assert len(pooled_rows(residuals, 0)) == 0

@@ -23,6 +23,9 @@ log = logging.getLogger("escape")
 
 MIN_INPUT_POINTS = 16
 NORMALIZE_MODES = ("auto", "none")
+# With several anchor sets, this share of the pooled predicted points (the largest
+# residuals) is left out before the even draw (chosen on validation: models/README.md).
+ENSEMBLE_DROP = 0.1
 
 
 @dataclass(frozen=True)
@@ -36,9 +39,9 @@ class Completion:
         observed points); a confidence measure.
     is_observed : (M,) bool, True for points copied from the input.
     is_snapped : (M,) bool, True for predicted points pulled onto the scan's surface.
-    anchors : (K, 3) float64, the anchors in the input's frame.
+    anchors : (K, 3) float64, the anchors in the input's frame (the first set's).
     anchor_indices : (K,) int64, rows of the network input (the FPS-ordered subsample).
-    near_planar : bool, the anchors were nearly coplanar (less reliable depth).
+    near_planar : bool, the anchors (of any set) were nearly coplanar (less reliable depth).
     normalization : the transform applied before the network (`invert` maps back).
     available : int, the distinct points the output was drawn from (predicted, plus the
         observed ones with `keep_input`); the output has min(output_points, available).
@@ -78,6 +81,7 @@ def complete(
     snap_radius: float | None = None,
     solver: str = "batched",
     threads: int = 0,
+    anchor_sets: int = 1,
 ) -> Completion:
     """Complete a partial cloud.
 
@@ -97,16 +101,21 @@ def complete(
     solver : "batched" (fast, guarded LM) or "scipy" (per-point reference LM).
     threads : cores this completion may use (onnxruntime's threads, and threads for the
         solver and the snap's neighbour query); 0 for all of them.
+    anchor_sets : S, complete from S anchor sets (`escape_cli.core.anchors.anchor_sets`)
+        and pool the results: the network and the solver run S times, the predicted
+        points of all sets are pooled, the ENSEMBLE_DROP share with the largest residuals
+        left out, and an even seeded draw of the rest fills the output. Covers more of the
+        unseen parts than one set (models/README.md, "Anchor-set ensembles"); 1 to K.
 
     Returns
     -------
     Completion
     """
-    options = _Options.check(normalize, output_points, keep_input, snap_radius, solver, threads)
+    options = _Options.check(normalize, output_points, keep_input, snap_radius, solver, threads, anchor_sets)
     pts = _checked_cloud(points)
-    net = _load(model, threads)
+    net = _load(model, threads, options)
     scan = _prepare(pts, net, options)
-    return _finish(scan, net.predict(scan.features[None])[0], options)
+    return _finish(scan, net.predict(scan.features), options)
 
 
 def complete_many(
@@ -121,6 +130,7 @@ def complete_many(
     snap_radius: float | None = None,
     solver: str = "batched",
     threads: int = 0,
+    anchor_sets: int = 1,
 ) -> list:
     """Complete many partial clouds, running the network on `batch_size` scans at a time.
 
@@ -136,18 +146,18 @@ def complete_many(
     ----------
     clouds : iterable of (N_i, 3) float arrays.
     model : as in `complete`; loaded once.
-    batch_size : scans per forward pass (B).
+    batch_size : scans per forward pass (B; each scan is S rows of it with `anchor_sets`).
     return_exceptions : put the `EscapeError` a cloud raises in its place in the result
         and go on with the others, instead of raising it.
-    normalize, output_points, keep_input, snap_radius, solver, threads : as in `complete`.
+    normalize, output_points, keep_input, snap_radius, solver, threads, anchor_sets : as in `complete`.
 
     Returns
     -------
     list of Completion (or EscapeError, with `return_exceptions`), one per cloud, in order.
     """
-    options = _Options.check(normalize, output_points, keep_input, snap_radius, solver, threads)
+    options = _Options.check(normalize, output_points, keep_input, snap_radius, solver, threads, anchor_sets)
     batch_size = as_count(batch_size, "batch_size", minimum=1)
-    net = _load(model, threads)
+    net = _load(model, threads, options)
     results: list = []
     waiting: list = []  # (position in results, _Scan) before the network
 
@@ -155,7 +165,8 @@ def complete_many(
         if not waiting:
             return
         try:
-            predicted = net.predict(np.stack([scan.features for _, scan in waiting]))  # (B, M', K)
+            rows = net.predict(np.concatenate([scan.features for _, scan in waiting]))  # (B * S, M', K)
+            predicted = np.split(rows, len(waiting))  # B of (S, M', K)
         except EscapeError as err:
             if not return_exceptions:
                 raise
@@ -198,9 +209,10 @@ class _Options:
     snap_radius: float
     solver: str
     workers: int  # threads of the solver and the snap
+    anchor_sets: int
 
     @classmethod
-    def check(cls, normalize, output_points, keep_input, snap_radius, solver, threads) -> "_Options":
+    def check(cls, normalize, output_points, keep_input, snap_radius, solver, threads, anchor_sets=1) -> "_Options":
         from escape_cli.core.reconstruction import METHODS
         from escape_cli.core.snap import SNAP_RADIUS, check_snap_radius
 
@@ -211,13 +223,18 @@ class _Options:
             snap_radius=SNAP_RADIUS if snap_radius is None else check_snap_radius(snap_radius),
             solver=as_choice(solver, "the reconstruction method", METHODS),
             workers=as_count(threads, "threads", minimum=0) or (os.cpu_count() or 1),
+            anchor_sets=as_count(anchor_sets, "anchor_sets", minimum=1),
         )
 
 
-def _load(model, threads: int):
+def _load(model, threads: int, options: _Options):
+    """The loaded model, checked against the options that depend on it."""
     from escape_cli.inference import CompletionModel, load_model
 
-    return model if isinstance(model, CompletionModel) else load_model(None if model is None else str(model), threads)
+    net = model if isinstance(model, CompletionModel) else load_model(None if model is None else str(model), threads)
+    if options.anchor_sets > net.k:
+        raise ParameterError(f"anchor_sets must be at most {net.k}, the anchors of {net.path.name}; got {options.anchor_sets}")
+    return net
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,8 +242,8 @@ class _Scan:
     """A scan made ready for the network: its input, anchors and features."""
 
     net_in: object  # NetworkInput
-    anchors: object  # Anchors
-    features: np.ndarray  # (N', K) float32
+    anchor_sets: list  # S Anchors, the first `select_anchors`'s
+    features: np.ndarray  # (S, N', K) float32
     tree: object  # NeighbourIndex of the observed points, reused by the snap
 
 
@@ -243,57 +260,109 @@ def _checked_cloud(points) -> np.ndarray:
 
 def _prepare(pts: np.ndarray, net, options: _Options) -> _Scan:
     """Everything before the network: the network's frame, anchors, distances (pts checked)."""
-    from escape_cli.core.anchors import select_anchors
+    from escape_cli.core.anchors import anchor_sets
     from escape_cli.core.encoding import distance_matrix
     from escape_cli.core.neighbours import NeighbourIndex
 
     net_in = _network_input(pts, net, options.normalize)
     observed = net_in.observed  # (U, 3) in the network's frame
     tree = NeighbourIndex(observed)
-    anchors = select_anchors(observed, **net.anchors.to_dict(), tree=tree)  # (K, 3)
-    features = distance_matrix(net_in.rows, anchors.points).astype(np.float32)  # (N', K)
-    return _Scan(net_in, anchors, features, tree)
+    sets = anchor_sets(observed, options.anchor_sets, **net.anchors.to_dict(), tree=tree)  # S of (K, 3)
+    features = np.stack([distance_matrix(net_in.rows, a.points) for a in sets]).astype(np.float32)  # (S, N', K)
+    return _Scan(net_in, sets, features, tree)
 
 
 def _finish(scan: _Scan, predicted: np.ndarray, options: _Options) -> Completion:
-    """Everything after the network: solve, snap, merge the observed points, back to the input's frame."""
-    from escape_cli.core.reconstruction import reconstruct
-    from escape_cli.core.snap import snap_to_scan
+    """Everything after the network: solve, snap, pool the sets, merge the observed points, back to the input's frame.
 
-    net_in, anchors = scan.net_in, scan.anchors
+    predicted : (S, M', K) the network's distances for each anchor set of the scan.
+    """
+    net_in = scan.net_in
     observed_points = net_in.observed  # (U, 3)
-    predicted = np.asarray(predicted, dtype=np.float64)  # (M', K)
-    if net_in.unique < len(net_in.rows):  # repeated input rows seed identical queries: drop their copies
-        predicted = predicted[first_unique_rows(predicted, predicted.shape[1])]
-    rec = reconstruct(predicted, anchors.points, method=options.solver, reference_points=observed_points,
-                      workers=options.workers)
-    snap = snap_to_scan(rec.points, observed_points, options.snap_radius, tree=scan.tree, workers=options.workers)
-    out = snap.points  # (M', 3)
-    residuals = rec.residuals  # (M',)
+    solved = [_solve(scan, anchors, pred, options) for anchors, pred in zip(scan.anchor_sets, predicted)]
+    out = np.concatenate([one.points for one in solved])  # (P, 3), P = S * M' pooled predicted points
+    residuals = np.concatenate([one.residuals for one in solved])  # (P,)
+    snapped = np.concatenate([one.snapped for one in solved])  # (P,)
+    available = len(out) + (len(observed_points) if options.keep_input else 0)
+    if len(solved) > 1:
+        room = options.output_points - (len(observed_points) if options.keep_input else 0)
+        rows = pooled_rows(residuals, min(max(room, 0), len(out)))
+        out, residuals, snapped = out[rows], residuals[rows], snapped[rows]
     observed = np.zeros(len(out), dtype=bool)
-    snapped = snap.moved
     if options.keep_input:
         unique = len(observed_points)
         out = np.concatenate([out, observed_points])
         residuals = np.concatenate([residuals, np.zeros(unique)])
         observed = np.concatenate([observed, np.ones(unique, dtype=bool)])
         snapped = np.concatenate([snapped, np.zeros(unique, dtype=bool)])
-    if options.output_points > len(out):
+    if options.output_points > available:
         log.warning("the completion has %d distinct points, fewer than the %d asked for; all are returned",
-                    len(out), options.output_points)
+                    available, options.output_points)
     rows = select_confident_rows(residuals, min(options.output_points, len(out)))  # a subset: never a repeated point
     norm = net_in.normalization
+    first = scan.anchor_sets[0]
     return Completion(
         points=norm.invert(out[rows]),
         residuals=residuals[rows] * norm.scale,
         is_observed=observed[rows],
         is_snapped=snapped[rows],
-        anchors=norm.invert(anchors.points),
-        anchor_indices=anchors.indices,
-        near_planar=bool(rec.near_planar),
+        anchors=norm.invert(first.points),
+        anchor_indices=first.indices,
+        near_planar=any(one.near_planar for one in solved),
         normalization=norm,
-        available=len(out),
+        available=available,
     )
+
+
+@dataclass(frozen=True)
+class _Solved:
+    """The predicted points of one anchor set, in the network's frame."""
+
+    points: np.ndarray  # (M', 3) after the snap
+    residuals: np.ndarray  # (M',) the solver's
+    snapped: np.ndarray  # (M',) bool
+    near_planar: bool
+
+
+def _solve(scan: _Scan, anchors, predicted: np.ndarray, options: _Options) -> _Solved:
+    """Points from one set's predicted distances (M', K): reconstruct, then snap onto the scan."""
+    from escape_cli.core.reconstruction import reconstruct
+    from escape_cli.core.snap import snap_to_scan
+
+    observed_points = scan.net_in.observed  # (U, 3)
+    predicted = np.asarray(predicted, dtype=np.float64)  # (M', K)
+    if scan.net_in.unique < len(scan.net_in.rows):  # repeated input rows seed identical queries: drop their copies
+        predicted = predicted[first_unique_rows(predicted, predicted.shape[1])]
+    rec = reconstruct(predicted, anchors.points, method=options.solver, reference_points=observed_points,
+                      workers=options.workers)
+    snap = snap_to_scan(rec.points, observed_points, options.snap_radius, tree=scan.tree, workers=options.workers)
+    return _Solved(snap.points, rec.residuals, snap.moved, bool(rec.near_planar))
+
+
+def pooled_rows(residuals, size: int, seed: int = 0) -> np.ndarray:
+    """Rows of `size` pooled predicted points: the least sure share left out, an even draw of the rest.
+
+    The ENSEMBLE_DROP share of the points with the largest residuals (no more than the
+    surplus) is left out, then `size` of the others are drawn uniformly with a fixed
+    seed. Depends only on the residuals' order and the rows' order, so it commutes with
+    any similarity of the points.
+
+    Parameters
+    ----------
+    residuals : (P,) float64, >= 0.
+    size : rows to keep, 0 <= size <= P.
+
+    Returns
+    -------
+    rows : (size,) int64, ascending, distinct.
+    """
+    count = len(residuals)
+    if size >= count:
+        return np.arange(count)
+    drop = min(int(ENSEMBLE_DROP * count), count - size)
+    kept = np.sort(np.argsort(residuals, kind="stable")[: count - drop])  # (P - drop,)
+    rng = np.random.default_rng(seed)
+    return np.sort(kept[rng.choice(len(kept), size, replace=False)])
 
 
 def _network_input(pts: np.ndarray, net, normalize: str):

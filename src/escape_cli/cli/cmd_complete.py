@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import FORMAT, INPUT_FORMAT, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
+from escape_cli.cli.options import ANCHOR_SETS, FORMAT, INPUT_FORMAT, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS
 
 DEFAULT_POINTS = 16384
 
@@ -24,6 +24,7 @@ def command(
     ),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge the observed points into the output."),
     snap_radius: Optional[float] = SNAP_RADIUS,
+    anchor_sets: int = ANCHOR_SETS,
     anchors_out: Optional[Path] = typer.Option(None, "--anchors-out", help="Save the anchors: a file (one input) or a folder."),
     residuals: bool = typer.Option(False, "--residuals", help="Add per-point reconstruction residuals as a 'residual' field."),
     solver: str = typer.Option("batched", "--solver", help="batched (fast LM) or scipy (reference LM)."),
@@ -50,7 +51,7 @@ def command(
     single = len(inputs) == 1 and files_from is None and (inputs[0] == "-" or Path(inputs[0]).is_file())
     loading = preload_model(model) if single else None
     try:
-        _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
+        _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchor_sets, anchors_out, residuals, solver,
                   workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
                   json_out, overwrite, preloading=loading is not None)
     finally:
@@ -58,7 +59,7 @@ def command(
             wait([loading])  # never leave the loader running at exit
 
 
-def _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchors_out, residuals, solver,
+def _complete(inputs, output, model, normalize, points, keep_input, snap_radius, anchor_sets, anchors_out, residuals, solver,
               workers, files_from, shard, skip_existing, engine, ray_address, fmt, input_format, recursive,
               json_out, overwrite, preloading: bool = False) -> None:
     from escape_cli.cli.batch import ENGINES, CompletionJob, check_model, parse_shard, plan_jobs, run_jobs
@@ -76,12 +77,13 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
         raise typer.BadParameter("give input files, folders or globs, or --files-from FILE", param_hint="INPUTS")
     shard_of = parse_shard(shard)
     points = _checked_points(model, points)
+    _check_anchor_sets(model, anchor_sets)
     check_model(model, threads=0, wait=not preloading)
     plan = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, files_from=files_from, shard=shard_of)
     _check_job_outputs(plan.jobs, fmt)
     settings = CompletionJob.Settings(
         model=model, normalize=normalize, points=points, keep_input=keep_input,
-        snap_radius=snap_radius, residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
+        snap_radius=snap_radius, anchor_sets=anchor_sets, residuals=residuals, solver=solver, fmt=fmt, overwrite=overwrite,
         input_format=input_format, skip_existing=skip_existing,
     )
     summary_stream = sys.stdout if json_out and output != "-" else sys.stderr
@@ -99,6 +101,15 @@ def _checked_points(model: Optional[str], points: Optional[int]) -> int:
     if points is None:
         return min(DEFAULT_POINTS, max_output_points(meta))
     return check_output_points(points, meta, Path(path).name, name="--points")
+
+
+def _check_anchor_sets(model: Optional[str], anchor_sets: int) -> None:
+    """Before any file is read: --anchor-sets at most the model's anchors."""
+    from escape_cli.inference import model_path, read_metadata
+
+    k = read_metadata(model_path(model))["k"]
+    if anchor_sets > k:
+        raise typer.BadParameter(f"must be at most {k}, the model's anchors", param_hint="--anchor-sets")
 
 
 def _check_job_outputs(jobs, fmt: Optional[str]) -> None:

@@ -10,7 +10,7 @@ from typing import List, Optional
 
 import typer
 
-from escape_cli.cli.options import JSON, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS, number_check
+from escape_cli.cli.options import ANCHOR_SETS, JSON, MODEL, NORMALIZE_HELP, OVERWRITE, SNAP_RADIUS, number_check
 
 
 def command(
@@ -30,6 +30,7 @@ def command(
     baseline: bool = typer.Option(True, "--baseline/--no-baseline", help="Also score the trivial answer: the input cloud itself."),
     keep_input: bool = typer.Option(True, "--keep-input/--no-keep-input", help="Merge observed points into the output."),
     snap_radius: Optional[float] = SNAP_RADIUS,
+    anchor_sets: int = ANCHOR_SETS,
     normalize: str = typer.Option("auto", "--normalize", help=NORMALIZE_HELP),
     reference: Optional[Path] = typer.Option(None, "--reference", help="KITTI: folder of complete reference cars for MMD."),
     reference_up: Optional[str] = typer.Option(
@@ -89,9 +90,12 @@ def command(
 
             raise OutputExistsError(f"{save} is not empty (use --overwrite to write into it)")
     net = load_model(str(model_path))
+    if anchor_sets > net.k:
+        raise typer.BadParameter(f"must be at most {net.k}, the model's anchors", param_hint="--anchor-sets")
+    options = dict(normalize=normalize, keep_input=keep_input, snap_radius=snap_radius, anchor_sets=anchor_sets)
 
     def escape_completer(points):
-        return complete(points, net, normalize=normalize, keep_input=keep_input, snap_radius=snap_radius).points
+        return complete(points, net, **options).points
 
     completers = {"escape": escape_completer}
     if baseline:
@@ -102,6 +106,7 @@ def command(
     settings = {
         "dataset": dataset, "root": str(root), "model": str(net.path), "rotate": rotate, "seed": seed,
         "keep_input": keep_input, "snap_radius": DEFAULT_SNAP_RADIUS if snap_radius is None else snap_radius, "normalize": normalize,
+        "anchor_sets": anchor_sets,
     }
     if dataset == "pcn":
         settings.update(split=split, noise=noise, drop=drop, limit=limit)
@@ -129,7 +134,7 @@ def command(
                 "no --reference folder of complete cars: MMD is not scored, nor is the input copy "
                 "(Fidelity is measured on the predicted points, and the copy predicts none)"
             )
-        completers = _kitti_completers(net, completers, normalize=normalize, keep_input=keep_input, snap_radius=snap_radius)
+        completers = _kitti_completers(net, completers, **options)
         report = evaluate_kitti(root, completers, reference=refs, rotate=rotate, seed=seed, save_dir=save)
         report = {"settings": settings, "metrics": METRIC_DEFINITIONS, **report}
         _print_kitti_table(report, table_stream)

@@ -48,6 +48,10 @@ NORMALIZE_HELP = (
     "auto: each scan is completed in its own frame (centre and size from the scan; any units, mapped back exactly); "
     "none: feed coordinates as they are (only for older models trained in absolute PCN units)."
 )
+ANCHOR_SETS = typer.Option(
+    1, "--anchor-sets", min=1,
+    help="Complete from this many anchor sets (at most the model's anchors, 8) and pool the points: more of the unseen parts, S times the time.",
+)
 SNAP_RADIUS = typer.Option(
     None, "--snap-radius", callback=number_check(minimum=0.0),
     help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.08; 0: off).",

@@ -11,6 +11,9 @@ Methods (paper section 3.1 and its ablation):
 
 All three are rotation, translation and permutation equivariant: near-ties in curvature
 are broken by distance to the FPS anchor, then by distance to the centroid.
+
+`anchor_sets` gives further, equally equivariant sets for an ensemble: set j restarts
+the FPS from the j-th anchor of the first set's FPS order.
 """
 
 from __future__ import annotations
@@ -24,9 +27,9 @@ from escape_cli.core.curvature import surface_variation
 from escape_cli.core.neighbours import NeighbourIndex
 from escape_cli.core.sampling import count_distinct, farthest_point_sampling
 from escape_cli.core.settings import DEFAULTS, METHODS, AnchorSettings
-from escape_cli.errors import DegenerateGeometryError
+from escape_cli.errors import DegenerateGeometryError, ParameterError
 
-__all__ = ["Anchors", "AnchorSettings", "DEFAULTS", "METHODS", "select_anchors"]
+__all__ = ["Anchors", "AnchorSettings", "DEFAULTS", "METHODS", "anchor_sets", "select_anchors"]
 
 # Curvatures within this absolute tolerance of the best candidate are treated as tied.
 CURVATURE_TIE_ATOL = 1e-6
@@ -70,26 +73,56 @@ def select_anchors(
     -------
     Anchors with indices (K,) and points (K, 3).
     """
+    return anchor_sets(points, 1, k, method, radius, knn, tree=tree)[0]
+
+
+def anchor_sets(
+    points,
+    count: int,
+    k: int = DEFAULTS.k,
+    method: str = DEFAULTS.method,
+    radius: float = DEFAULTS.radius,
+    knn: int = DEFAULTS.knn,
+    *,
+    tree=None,
+) -> list[Anchors]:
+    """`count` anchor sets on a cloud; the first is `select_anchors`'s.
+
+    Set j (j >= 1) runs the same method from a farthest point sampling restarted at the
+    j-th seed of the first set's FPS order, so every set is as equivariant as the first.
+    Sets may coincide on small or symmetric clouds.
+
+    Parameters
+    ----------
+    points, k, method, radius, knn, tree : as in `select_anchors`.
+    count : number of sets, 1 <= count <= k.
+
+    Returns
+    -------
+    list of `count` Anchors, each with indices (K,) and points (K, 3).
+    """
     AnchorSettings(k, method, radius, knn)  # checks the parameters
+    if not isinstance(count, (int, np.integer)) or isinstance(count, bool) or not 1 <= count <= k:
+        raise ParameterError(f"the number of anchor sets must be an integer from 1 to {k} (the anchors), got {count!r}")
     pts = as_points(points, "the cloud", min_points=k)
     distinct = count_distinct(pts)
     if distinct < k:
         raise DegenerateGeometryError(f"the cloud has only {distinct} distinct points; {k} anchors need at least {k}")
     check_not_collinear(pts, "the cloud's points")
 
-    seeds = farthest_point_sampling(pts, k)  # (K,)
+    first = farthest_point_sampling(pts, k)  # (K,)
+    seed_sets = [first] + [farthest_point_sampling(pts, k, start=int(first[j])) for j in range(1, count)]
     if method == "fps":
-        chosen = seeds
+        chosen_sets = seed_sets
     else:
         if tree is None:
             tree = NeighbourIndex(pts)
         curvature = surface_variation(pts, knn, tree=tree)  # (N,)
         centroid_dist = np.linalg.norm(pts - pts.mean(axis=0), axis=1)  # (N,)
-        if method == "ball":
-            chosen = _refine_in_balls(pts, seeds, curvature, centroid_dist, radius, tree)
-        else:
-            chosen = _refine_in_clusters(pts, seeds, curvature, centroid_dist)
-    return Anchors(indices=chosen.astype(np.int64), points=pts[chosen].copy())
+        refine = _refine_in_balls if method == "ball" else _refine_in_clusters
+        extra = (radius, tree) if method == "ball" else ()
+        chosen_sets = [refine(pts, seeds, curvature, centroid_dist, *extra) for seeds in seed_sets]
+    return [Anchors(indices=chosen.astype(np.int64), points=pts[chosen].copy()) for chosen in chosen_sets]
 
 
 def _best_candidate(candidates, curvature, seed_point, pts, centroid_dist) -> int:

@@ -46,6 +46,7 @@ class CompletionJob:
         threads: int = 0
         snap_radius: float | None = None
         skip_existing: bool = False
+        anchor_sets: int = 1
 
 
 Settings = CompletionJob.Settings
@@ -127,7 +128,7 @@ def complete_file(job: CompletionJob, settings: Settings, data: bytes | None = N
         result = complete(
             cloud, settings.model, normalize=settings.normalize, output_points=settings.points,
             keep_input=settings.keep_input, snap_radius=settings.snap_radius, solver=settings.solver,
-            threads=settings.threads,
+            threads=settings.threads, anchor_sets=settings.anchor_sets,
         )
     return _written(job, settings, targets, cloud, result, start)
 
@@ -246,7 +247,7 @@ def _guarded_many(jobs, ready, settings: Settings) -> list:
             [cloud for _, _, cloud, _ in ready], settings.model, batch_size=max(1, len(ready)),
             return_exceptions=True, normalize=settings.normalize, output_points=settings.points,
             keep_input=settings.keep_input, snap_radius=settings.snap_radius, solver=settings.solver,
-            threads=settings.threads,
+            threads=settings.threads, anchor_sets=settings.anchor_sets,
         )
     except EscapeError as err:  # the model or an option: every scan of the chunk fails alike
         results = [err] * len(ready)
