@@ -48,6 +48,7 @@ CALLS = {
     curvature.tie_stable_neighbours: ((CLOUD, 8), [0]),
     curvature.surface_variation: ((CLOUD, 8), [0]),
     anchors.select_anchors: ((CLOUD,), [0]),
+    anchors.anchor_sets: ((CLOUD, 3), [0]),
     encoding.distance_matrix: ((CLOUD, ANCHORS), [0, 1]),
     reconstruction.check_anchors: ((ANCHORS,), [0]),
     reconstruction.linear_multilateration: ((DISTANCES, ANCHORS), [0, 1]),
