@@ -283,10 +283,10 @@ def _finish(scan: _Scan, predicted: np.ndarray, options: _Options) -> Completion
     out = np.concatenate([one.points for one in solved])  # (P, 3), P = S * M' pooled predicted points
     residuals = np.concatenate([one.residuals for one in solved])  # (P,)
     snapped = np.concatenate([one.snapped for one in solved])  # (P,)
-    available = len(out) + (len(observed_points) if options.keep_input else 0)
+    merged = len(observed_points) if options.keep_input else 0  # observed points joining the output
+    available = len(out) + merged
     if len(solved) > 1:
-        room = options.output_points - (len(observed_points) if options.keep_input else 0)
-        rows = pooled_rows(residuals, min(max(room, 0), len(out)))
+        rows = pooled_rows(residuals, min(max(options.output_points - merged, 0), len(out)))
         out, residuals, snapped = out[rows], residuals[rows], snapped[rows]
     observed = np.zeros(len(out), dtype=bool)
     if options.keep_input:

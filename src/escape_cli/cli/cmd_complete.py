@@ -76,8 +76,7 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
     if not inputs and files_from is None:
         raise typer.BadParameter("give input files, folders or globs, or --files-from FILE", param_hint="INPUTS")
     shard_of = parse_shard(shard)
-    points = _checked_points(model, points)
-    _check_anchor_sets(model, anchor_sets)
+    points = _checked_model_options(model, points, anchor_sets)
     check_model(model, threads=0, wait=not preloading)
     plan = plan_jobs(inputs, output, fmt=fmt, anchors_out=anchors_out, recursive=recursive, files_from=files_from, shard=shard_of)
     _check_job_outputs(plan.jobs, fmt)
@@ -92,24 +91,18 @@ def _complete(inputs, output, model, normalize, points, keep_input, snap_radius,
         raise EscapeError(f"{failures} of {len(plan.jobs)} file(s) failed")
 
 
-def _checked_points(model: Optional[str], points: Optional[int]) -> int:
-    """Before any file is read: the model (a path or a packaged name) and its metadata, and --points within what it can produce."""
+def _checked_model_options(model: Optional[str], points: Optional[int], anchor_sets: int) -> int:
+    """Before any file is read: the model (a path or a packaged name) and its metadata, --anchor-sets
+    within its anchors, and --points (returned) within what it can produce."""
+    from escape_cli.cli.options import check_anchor_sets
     from escape_cli.inference import check_output_points, max_output_points, model_path, read_metadata
 
     path = model_path(model)
     meta = read_metadata(path)
+    check_anchor_sets(anchor_sets, meta["k"])
     if points is None:
         return min(DEFAULT_POINTS, max_output_points(meta))
     return check_output_points(points, meta, Path(path).name, name="--points")
-
-
-def _check_anchor_sets(model: Optional[str], anchor_sets: int) -> None:
-    """Before any file is read: --anchor-sets at most the model's anchors."""
-    from escape_cli.inference import model_path, read_metadata
-
-    k = read_metadata(model_path(model))["k"]
-    if anchor_sets > k:
-        raise typer.BadParameter(f"must be at most {k}, the model's anchors", param_hint="--anchor-sets")
 
 
 def _check_job_outputs(jobs, fmt: Optional[str]) -> None:

@@ -51,7 +51,7 @@ def command(
 
     from rich.console import Console
 
-    from escape_cli.cli.options import check_output
+    from escape_cli.cli.options import check_anchor_sets, check_output
     from escape_cli.evaluation import (
         METRIC_DEFINITIONS,
         Perturbation,
@@ -90,8 +90,7 @@ def command(
 
             raise OutputExistsError(f"{save} is not empty (use --overwrite to write into it)")
     net = load_model(str(model_path))
-    if anchor_sets > net.k:
-        raise typer.BadParameter(f"must be at most {net.k}, the model's anchors", param_hint="--anchor-sets")
+    check_anchor_sets(anchor_sets, net.k)
     options = dict(normalize=normalize, keep_input=keep_input, snap_radius=snap_radius, anchor_sets=anchor_sets)
 
     def escape_completer(points):

@@ -52,6 +52,14 @@ ANCHOR_SETS = typer.Option(
     1, "--anchor-sets", min=1,
     help="Complete from this many anchor sets (at most the model's anchors, 8) and pool the points: more of the unseen parts, S times the time.",
 )
+
+
+def check_anchor_sets(anchor_sets: int, k: int) -> None:
+    """A usage error for --anchor-sets above the model's K anchors."""
+    if anchor_sets > k:
+        raise typer.BadParameter(f"must be at most {k}, the model's anchors", param_hint="--anchor-sets")
+
+
 SNAP_RADIUS = typer.Option(
     None, "--snap-radius", callback=number_check(minimum=0.0),
     help="Pull predicted points within about this distance of the scan onto its surface, in model units (default 0.08; 0: off).",
