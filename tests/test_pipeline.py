@@ -161,6 +161,29 @@ def test_anchor_set_ensemble_pools_every_set_and_keeps_the_scan(tiny_model, rng)
     assert alone.points.shape == (1000, 3) and not alone.is_observed.any()
 
 
+def test_anchor_set_ensemble_solves_only_the_share_the_output_needs(tiny_model, rng, monkeypatch):
+    import escape_cli.core.reconstruction as reconstruction
+
+    solved_rows = []
+    original = reconstruction.reconstruct
+
+    def counting(predicted, *args, **kwargs):
+        solved_rows.append(len(predicted))
+        return original(predicted, *args, **kwargs)
+
+    monkeypatch.setattr(reconstruction, "reconstruct", counting)
+    cloud = partial_cloud(rng, 300)  # 256 observed rows, 1024 predicted per set
+    out = complete(cloud, tiny_model, output_points=1000, anchor_sets=4)
+    assert solved_rows == [207] * 4, "ceil((1000 - 256) / (4 * 0.9)) rows of each set"
+    assert out.points.shape == (1000, 3) and out.available == 4 * 1024 + 256
+    solved_rows.clear()
+    everything = complete(cloud, tiny_model, output_points=4 * 1024 + 256, anchor_sets=4)
+    assert solved_rows == [1024] * 4 and len(everything.points) == 4 * 1024 + 256
+    solved_rows.clear()
+    few = complete(cloud, tiny_model, output_points=100, anchor_sets=3)  # fewer than the observed points
+    assert solved_rows == [1] * 3 and few.is_observed.all() and len(few.points) == 100
+
+
 def test_complete_many_with_anchor_sets_equals_complete(tiny_model, rng):
     from escape_cli import complete_many
 

@@ -102,10 +102,11 @@ def complete(
     threads : cores this completion may use (onnxruntime's threads, and threads for the
         solver and the snap's neighbour query); 0 for all of them.
     anchor_sets : S, complete from S anchor sets (`escape_cli.core.anchors.anchor_sets`)
-        and pool the results: the network and the solver run S times, the predicted
-        points of all sets are pooled, the ENSEMBLE_DROP share with the largest residuals
-        left out, and an even seeded draw of the rest fills the output. Covers more of the
-        unseen parts than one set (models/README.md, "Anchor-set ensembles"); 1 to K.
+        and pool the results: the network runs S times, the solver on an even seeded
+        share of each set's rows (as many as the output needs), the ENSEMBLE_DROP share
+        of the pool with the largest residuals is left out, and an even seeded draw of the
+        rest fills the output. Covers more of the unseen parts than one set
+        (models/README.md, "Anchor-set ensembles"); 1 to K.
 
     Returns
     -------
@@ -279,14 +280,16 @@ def _finish(scan: _Scan, predicted: np.ndarray, options: _Options) -> Completion
     """
     net_in = scan.net_in
     observed_points = net_in.observed  # (U, 3)
-    solved = [_solve(scan, anchors, pred, options) for anchors, pred in zip(scan.anchor_sets, predicted)]
-    out = np.concatenate([one.points for one in solved])  # (P, 3), P = S * M' pooled predicted points
+    merged = len(observed_points) if options.keep_input else 0  # observed points joining the output
+    wanted = max(options.output_points - merged, 0)  # predicted points the output needs
+    share = _per_set_share(wanted, len(predicted))
+    solved = [_solve(scan, anchors, pred, options, share, j) for j, (anchors, pred) in enumerate(zip(scan.anchor_sets, predicted))]
+    out = np.concatenate([one.points for one in solved])  # (P, 3) pooled predicted points, P <= S * M'
     residuals = np.concatenate([one.residuals for one in solved])  # (P,)
     snapped = np.concatenate([one.snapped for one in solved])  # (P,)
-    merged = len(observed_points) if options.keep_input else 0  # observed points joining the output
-    available = len(out) + merged
+    available = sum(one.rows for one in solved) + merged
     if len(solved) > 1:
-        rows = pooled_rows(residuals, min(max(options.output_points - merged, 0), len(out)))
+        rows = pooled_rows(residuals, min(wanted, len(out)))
         out, residuals, snapped = out[rows], residuals[rows], snapped[rows]
     observed = np.zeros(len(out), dtype=bool)
     if options.keep_input:
@@ -318,14 +321,32 @@ def _finish(scan: _Scan, predicted: np.ndarray, options: _Options) -> Completion
 class _Solved:
     """The predicted points of one anchor set, in the network's frame."""
 
-    points: np.ndarray  # (M', 3) after the snap
-    residuals: np.ndarray  # (M',) the solver's
-    snapped: np.ndarray  # (M',) bool
+    points: np.ndarray  # (R, 3) after the snap, R <= M' (the rows solved)
+    residuals: np.ndarray  # (R,) the solver's
+    snapped: np.ndarray  # (R,) bool
     near_planar: bool
+    rows: int  # M', the set's distinct predicted rows (solved or not)
 
 
-def _solve(scan: _Scan, anchors, predicted: np.ndarray, options: _Options) -> _Solved:
-    """Points from one set's predicted distances (M', K): reconstruct, then snap onto the scan."""
+def _per_set_share(wanted: int, sets: int) -> int | None:
+    """Predicted rows to solve from each of `sets` anchor sets (None: all of them).
+
+    The pooled draw keeps `wanted` points after leaving out the ENSEMBLE_DROP share, so
+    an even draw of wanted / (S (1 - drop)) rows of each set is solved, not all S * M':
+    the same pool in distribution, at about the solver's cost of one set.
+    """
+    if sets == 1:
+        return None
+    return max(1, int(np.ceil(wanted / (sets * (1.0 - ENSEMBLE_DROP)))))
+
+
+def _solve(scan: _Scan, anchors, predicted: np.ndarray, options: _Options, share: int | None = None,
+           set_index: int = 0) -> _Solved:
+    """Points from one set's predicted distances (M', K): reconstruct, then snap onto the scan.
+
+    share : solve an even seeded draw of this many rows (None: all); drawn from the row
+        count and `set_index` alone, so the choice commutes with any similarity.
+    """
     from escape_cli.core.reconstruction import reconstruct
     from escape_cli.core.snap import snap_to_scan
 
@@ -333,10 +354,13 @@ def _solve(scan: _Scan, anchors, predicted: np.ndarray, options: _Options) -> _S
     predicted = np.asarray(predicted, dtype=np.float64)  # (M', K)
     if scan.net_in.unique < len(scan.net_in.rows):  # repeated input rows seed identical queries: drop their copies
         predicted = predicted[first_unique_rows(predicted, predicted.shape[1])]
+    rows = len(predicted)
+    if share is not None and share < rows:
+        predicted = predicted[np.sort(np.random.default_rng((1, set_index)).choice(rows, share, replace=False))]
     rec = reconstruct(predicted, anchors.points, method=options.solver, reference_points=observed_points,
                       workers=options.workers)
     snap = snap_to_scan(rec.points, observed_points, options.snap_radius, tree=scan.tree, workers=options.workers)
-    return _Solved(snap.points, rec.residuals, snap.moved, bool(rec.near_planar))
+    return _Solved(snap.points, rec.residuals, snap.moved, bool(rec.near_planar), rows)
 
 
 def pooled_rows(residuals, size: int, seed: int = 0) -> np.ndarray:
