@@ -351,7 +351,8 @@ def test_resume_keeps_every_option_of_the_run_not_given_again(tiny_tree, tmp_pat
     out = tmp_path / "run"
     res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--config", "tiny", "--batch", "2", "--lr", "1e-3",
                      "--views", "1", "--seed", "5", "--recall-weight", "2", "--val-limit", "4", "--val-xyz", "3",
-                     "--snapshot-every", "1", "--workers", "1", "--max-steps", "1")
+                     "--snapshot-every", "1", "--workers", "1", "--max-steps", "1", "--cache", tmp_path / "cache",
+                     "--val-data", tiny_tree)
     assert res.exit_code == 0, res.stderr
     res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--max-steps", "2", "--workers", "1")
     assert res.exit_code == 0, res.stderr
@@ -362,6 +363,8 @@ def test_resume_keeps_every_option_of_the_run_not_given_again(tiny_tree, tmp_pat
                                           "xyz_val_samples", "snapshot_every")}
     assert kept == {"config": "tiny", "batch": 2, "lr": 1e-3, "views_per_object": 1, "seed": 5, "recall_weight": 2.0,
                     "val_limit": 4, "xyz_val_samples": 3, "snapshot_every": 1}
+    assert options["cache"] == str(tmp_path / "cache") and list(options["val_data"]) == [str(tiny_tree)]
+    assert not (out / "cache").exists(), "the resumed run kept its cache folder"
     assert json.loads((out / "options.json").read_text())["lr"] == 1e-3
     # an option given again replaces the run's, even when it is the default value
     res = run_escape("-q", "train", "--data", tiny_tree, "--out", out, "--resume", "--lr", "5e-4", "--max-steps", "3", "--workers", "1")

@@ -39,8 +39,8 @@ def command(
     init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of this checkpoint or exported .onnx model (new optimizer and schedule); --resume keeps the run's record of it."),
     max_steps: Optional[int] = typer.Option(None, "--max-steps", min=1, help="End the run (and its learning-rate schedule) after this many steps."),
     snapshot_every: int = typer.Option(0, "--snapshot-every", min=0, help="Keep the weights every N steps in OUT/snapshots (for `escape average-checkpoints`)."),
-    precision: Optional[str] = typer.Option(
-        None, "--precision", metavar="fp32|bf16",
+    precision: str = typer.Option(
+        "fp32", "--precision", metavar="fp32|bf16",
         help="fp32, or bf16: the forward under bfloat16 autocast, ~2x faster on CPUs with AVX512-BF16 (weights, optimizer and checkpoints stay float32). Default fp32; --resume keeps the run's.",
     ),
     cache: Optional[Path] = typer.Option(
@@ -71,7 +71,7 @@ def command(
         get_preset(config)  # fail early on an unknown preset
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="--config") from None
-    if precision is not None and precision not in PRECISIONS:
+    if precision not in PRECISIONS:
         raise typer.BadParameter(f"must be {' or '.join(PRECISIONS)}, got {precision!r}", param_hint="--precision")
     _check_device(device)
     if resume and init is not None:
@@ -79,26 +79,22 @@ def command(
     if not resume and (out / "last.pt").exists():
         raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
     _check_run_folder(out, data, init)
-    saved = saved_options(out) if resume else {}  # what --resume keeps when not given again
-    if precision is None:
-        precision = saved.get("precision") or "fp32"  # a run from before --precision trained in fp32
-    if resume and saved.get("init"):
-        init = Path(saved["init"])  # the record of where the run started; last.pt holds its weights
-    if cache is None and saved.get("cache"):
-        cache = Path(saved["cache"])
-    val_roots = tuple(str(d) for d in val_data) if val_data else tuple(saved.get("val_data") or ())
-    _check_val_data(val_roots, cache)
     run = dict(
         config=config, epochs=epochs, batch=batch, lr=lr, seed=seed, val_every=val_every, val_limit=val_limit,
         xyz_val_samples=val_xyz, denoise_sigma=denoise, augment_noise=augment_noise, augment_density=augment_density,
         categories=tuple(categories) if categories else None, views_per_object=views, max_steps=max_steps,
-        xyz_weight=xyz_weight, recall_weight=recall_weight, snapshot_every=snapshot_every,
+        xyz_weight=xyz_weight, recall_weight=recall_weight, snapshot_every=snapshot_every, precision=precision,
+        cache=str(cache) if cache else None, val_data=tuple(str(d) for d in val_data or ()),
     )
     if resume:
+        saved = saved_options(out)
         run.update(_kept_run_options(context, saved, config))
+        if saved.get("init"):
+            init = Path(saved["init"])  # the record of where the run started; last.pt holds its weights
+    _check_val_data(run["val_data"], Path(run["cache"]) if run["cache"] else None)
     options = TrainOptions(
-        data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), device=device, workers=workers, threads=threads,
-        init=str(init) if init else None, precision=precision, cache=str(cache) if cache else None, val_data=val_roots, **run,
+        data=str(data[0]), extra_data=tuple(str(d) for d in data[1:]), out=str(out), device=device, workers=workers,
+        threads=threads, init=str(init) if init else None, **run,
     )
     trainer = Trainer(options, resume=resume)
     several = len(trainer.val_sets) > 1
@@ -117,6 +113,7 @@ RUN_OPTIONS = {
     "val_limit": "val_limit", "val_xyz": "xyz_val_samples", "denoise": "denoise_sigma", "augment_noise": "augment_noise",
     "augment_density": "augment_density", "categories": "categories", "views": "views_per_object", "max_steps": "max_steps",
     "xyz_weight": "xyz_weight", "recall_weight": "recall_weight", "snapshot_every": "snapshot_every",
+    "precision": "precision", "cache": "cache", "val_data": "val_data",
 }
 
 
