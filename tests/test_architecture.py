@@ -26,6 +26,7 @@ LAYERS = {
     "escape_cli.pipeline": 4,
     "escape_cli.engines": 5,
     "escape_cli.evaluation": 5,
+    "escape_cli.eval_compare": 5,
     "escape_cli.render_png": 5,
     "escape_cli.nn": 5,
     "escape_cli.cli": 6,
