@@ -16,7 +16,7 @@ import numpy as np
 
 from escape_cli.core.checks import as_points
 from escape_cli.core.params import as_choice, as_count
-from escape_cli.core.sampling import count_distinct, first_unique_rows, select_confident_rows
+from escape_cli.core.sampling import count_distinct, first_unique_rows, resample_rows, select_confident_rows
 from escape_cli.errors import EscapeError, ParameterError, PointCloudError
 
 log = logging.getLogger("escape")
@@ -356,7 +356,7 @@ def _solve(scan: _Scan, anchors, predicted: np.ndarray, options: _Options, share
         predicted = predicted[first_unique_rows(predicted, predicted.shape[1])]
     rows = len(predicted)
     if share is not None and share < rows:
-        predicted = predicted[np.sort(np.random.default_rng((1, set_index)).choice(rows, share, replace=False))]
+        predicted = predicted[resample_rows(rows, share, seed=(1, set_index))]
     rec = reconstruct(predicted, anchors.points, method=options.solver, reference_points=observed_points,
                       workers=options.workers)
     snap = snap_to_scan(rec.points, observed_points, options.snap_radius, tree=scan.tree, workers=options.workers)

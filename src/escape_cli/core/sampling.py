@@ -489,7 +489,7 @@ def prepare_input(points, size: int = 2048) -> tuple[np.ndarray, int]:
     return chosen, count
 
 
-def resample_rows(count: int, size: int, seed: int = 0) -> np.ndarray:
+def resample_rows(count: int, size: int, seed: int | tuple = 0) -> np.ndarray:
     """Deterministic rows to turn `count` points into `size`: a seeded subset, or all plus repeats.
 
     Depends only on the counts, so it commutes with any rotation of the points. The
