@@ -1,10 +1,11 @@
-"""Is model B better than model A? Paired difference of two `escape eval --json` reports.
+"""Is model B better than model A? Paired difference of two `escape eval` reports.
 
 Usage: `.venv/bin/python scripts/compare_evals.py A.json B.json [--metric escape/cd_l1_x1000]`
 
 Prints B minus A sample by sample: the mean difference, its standard error, z, and how
 many samples got better or worse. Both reports must score the same samples (the same
-dataset, split and --limit).
+dataset, split and --limit). A report is a `--json-out` file or the captured stdout of
+`--json`.
 """
 
 from __future__ import annotations

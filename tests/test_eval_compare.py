@@ -46,6 +46,8 @@ def test_reports_without_shared_samples_or_records_are_refused(tmp_path):
         paired_difference(_report([1.0], ["x"]), _report([1.0], ["y"]))
     with pytest.raises(EscapeError, match="per-sample"):
         paired_difference({"average": {}}, _report([1.0]))
+    (tmp_path / "indented.json").write_text(json.dumps(_report([1.0, 2.0]), indent=1) + "\n")  # as --json-out writes
+    assert read_report(tmp_path / "indented.json") == _report([1.0, 2.0])
     (tmp_path / "bad.json").write_text("not json")
     with pytest.raises(EscapeError, match="cannot read"):
         read_report(tmp_path / "bad.json")

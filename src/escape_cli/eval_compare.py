@@ -42,12 +42,15 @@ class PairedDifference:
 
 
 def read_report(path: str | Path) -> dict:
-    """The JSON report `escape eval --json` printed (its last line)."""
+    """An `escape eval` report: a `--json-out` file (indented JSON) or captured `--json` output (its last line)."""
     try:
-        lines = Path(path).read_text().strip().splitlines()
-        return json.loads(lines[-1])
+        text = Path(path).read_text().strip()
+        try:
+            return json.loads(text)
+        except ValueError:
+            return json.loads(text.splitlines()[-1])
     except (OSError, IndexError, ValueError) as err:
-        raise EscapeError(f"cannot read an escape eval --json report from {path}: {err}") from None
+        raise EscapeError(f"cannot read an escape eval report from {path}: {err}") from None
 
 
 def _by_sample(report: dict, metric: str) -> dict[tuple, float]:
