@@ -377,6 +377,27 @@ def test_resume_keeps_every_option_of_the_run_not_given_again(tiny_tree, tmp_pat
     assert _weights(out / "last.pt")["step"] == 3
 
 
+def test_resume_without_data_keeps_the_runs_datasets(tiny_tree, tmp_path):
+    """`--resume` needs only --out: the run's datasets (every --data, in order) go on; a new run needs --data."""
+    from cli_runner import run_escape
+
+    second = tmp_path / "second"
+    write_tiny_pcn_tree(second)
+    out = tmp_path / "run"
+    res = run_escape("-q", "train", "--data", tiny_tree, "--data", second, "--out", out, "--config", "tiny",
+                     "--batch", "2", "--workers", "1", "--val-limit", "4", "--max-steps", "1")
+    assert res.exit_code == 0, res.stderr
+    res = run_escape("-q", "train", "--out", out, "--resume", "--max-steps", "2", "--workers", "1")
+    assert res.exit_code == 0, res.stderr
+    options = _weights(out / "last.pt")["options"]
+    assert _weights(out / "last.pt")["step"] == 2
+    assert options["data"] == str(tiny_tree) and list(options["extra_data"]) == [str(second)]
+    res = run_escape("-q", "train", "--out", tmp_path / "none", "--resume", "--workers", "1")
+    assert res.exit_code != 0 and "cannot resume" in res.stderr and "Traceback" not in res.stderr
+    res = run_escape("-q", "train", "--out", tmp_path / "fresh", "--config", "tiny")
+    assert res.exit_code == 2 and "--data" in res.stderr and "missing" in res.stderr
+
+
 def test_resume_keeps_the_record_of_init_and_refuses_a_new_one(tiny_tree, tmp_path):
     from cli_runner import run_escape
 

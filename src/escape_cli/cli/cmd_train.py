@@ -12,9 +12,9 @@ from escape_cli.cli.options import number_check, print_summary
 
 def command(
     context: typer.Context,
-    data: List[Path] = typer.Option(
-        ..., "--data",
-        help="PCN-layout dataset root (from `escape dataset synth`, or PCN); repeat to train on several (validation: the first's val split).",
+    data: Optional[List[Path]] = typer.Option(
+        None, "--data",
+        help="PCN-layout dataset root (from `escape dataset synth`, or PCN); repeat to train on several (validation: the first's val split). Required, except that --resume keeps the run's.",
     ),
     out: Path = typer.Option(..., "--out", help="Run folder: checkpoints, curve.csv (and the cache unless --cache)."),
     config: str = typer.Option("small", "--config", help="Network preset: small, small-deep (small with 6+6 transformer layers), small-refine (small with two coarse-to-fine offset steps after the fold); both grow from a small model by --init; paper (or tiny for tests)."),
@@ -65,6 +65,7 @@ def command(
     if init is not None and init.suffix.lower() == ".onnx":
         require("onnx", "escape train --init MODEL.onnx")
     from escape_cli.nn.config import get_preset
+    from escape_cli.errors import EscapeError
     from escape_cli.nn.train import PRECISIONS, Trainer, TrainOptions, saved_options
 
     try:
@@ -78,6 +79,13 @@ def command(
         raise typer.BadParameter("--resume goes on from OUT/last.pt's weights; --init starts a new run (give it another --out)", param_hint="--init")
     if not resume and (out / "last.pt").exists():
         raise typer.BadParameter(f"{out} already holds a run; use --resume or another --out", param_hint="--out")
+    saved = saved_options(out) if resume else {}
+    if not data:
+        if resume and not saved:
+            raise EscapeError(f"cannot resume: {out / 'last.pt'} does not exist")
+        data = _saved_data(saved)
+        if not data:
+            raise typer.BadParameter("missing (required; only --resume keeps the run's)", param_hint="--data")
     _check_run_folder(out, data, init)
     run = dict(
         config=config, epochs=epochs, batch=batch, lr=lr, seed=seed, val_every=val_every, val_limit=val_limit,
@@ -87,7 +95,6 @@ def command(
         cache=str(cache) if cache else None, val_data=tuple(str(d) for d in val_data or ()),
     )
     if resume:
-        saved = saved_options(out)
         run.update(_kept_run_options(context, saved, config))
         if saved.get("init"):
             init = Path(saved["init"])  # the record of where the run started; last.pt holds its weights
@@ -129,6 +136,13 @@ def _kept_run_options(context: typer.Context, saved: dict, config: str) -> dict:
     if "config" in given and "config" in saved and run.config != config:
         raise typer.BadParameter(f"the run is a {run.config} network; a resumed run keeps it (leave --config out)", param_hint="--config")
     return {field: getattr(run, field) for name, field in RUN_OPTIONS.items() if name not in given and field in saved}
+
+
+def _saved_data(saved: dict) -> List[Path]:
+    """The datasets of a saved run (its first --data, then the others); [] without one."""
+    if not saved.get("data"):
+        return []
+    return [Path(saved["data"]), *(Path(root) for root in saved.get("extra_data") or ())]
 
 
 def _check_device(device: str) -> None:
