@@ -389,8 +389,9 @@ def test_resume_without_data_keeps_the_runs_datasets(tiny_tree, tmp_path):
     assert res.exit_code == 0, res.stderr
     res = run_escape("-q", "train", "--out", out, "--resume", "--max-steps", "2", "--workers", "1")
     assert res.exit_code == 0, res.stderr
-    options = _weights(out / "last.pt")["options"]
-    assert _weights(out / "last.pt")["step"] == 2
+    state = _weights(out / "last.pt")
+    options = state["options"]
+    assert state["step"] == 2
     assert options["data"] == str(tiny_tree) and list(options["extra_data"]) == [str(second)]
     res = run_escape("-q", "train", "--out", tmp_path / "none", "--resume", "--workers", "1")
     assert res.exit_code != 0 and "cannot resume" in res.stderr and "Traceback" not in res.stderr

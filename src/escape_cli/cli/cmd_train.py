@@ -64,8 +64,8 @@ def command(
     require("torch", "escape train")
     if init is not None and init.suffix.lower() == ".onnx":
         require("onnx", "escape train --init MODEL.onnx")
-    from escape_cli.nn.config import get_preset
     from escape_cli.errors import EscapeError
+    from escape_cli.nn.config import get_preset
     from escape_cli.nn.train import PRECISIONS, Trainer, TrainOptions, saved_options
 
     try:
